@@ -1,0 +1,5 @@
+from sb3_td3x.td3x.policies import CnnPolicy, MlpPolicy, MultiInputPolicy, TD3XCritic, TD3XPolicy
+from sb3_td3x.td3x.presets import DDPG, PRESETS, preset_kwargs
+from sb3_td3x.td3x.td3x import TD3X
+
+__all__ = ["DDPG", "PRESETS", "TD3X", "CnnPolicy", "MlpPolicy", "MultiInputPolicy", "TD3XCritic", "TD3XPolicy", "preset_kwargs"]

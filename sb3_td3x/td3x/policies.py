@@ -1,0 +1,55 @@
+"""Policies for TD3X: SB3's TD3 actor and policy, with a critic that returns all Q-values as one tensor."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch as th
+from stable_baselines3.common.policies import ContinuousCritic
+from stable_baselines3.common.torch_layers import BaseFeaturesExtractor, CombinedExtractor, NatureCNN
+from stable_baselines3.td3.policies import TD3Policy
+
+
+class TD3XCritic(ContinuousCritic):
+    """SB3's ``ContinuousCritic`` (same modules, same state dict) with :meth:`q_values`, the critics' outputs stacked.
+
+    The state dict is SB3's, so weights move between ``TD3`` and ``TD3X`` with ``load_state_dict``.
+    """
+
+    def q_values(self, obs: th.Tensor, actions: th.Tensor) -> th.Tensor:
+        """Q_i(s, a) for every critic i. Returns shape (n_critics, batch_size, 1)."""
+        return th.stack(self(obs, actions))
+
+
+class TD3XPolicy(TD3Policy):
+    """SB3's ``TD3Policy`` (actor, critics and their targets: steps 2 and 3) with :class:`TD3XCritic` critics.
+
+    Takes exactly the arguments of SB3's ``TD3Policy``: ``net_arch`` (default [400, 300]), ``activation_fn``,
+    ``features_extractor_class``, ``n_critics`` (default 2), ``share_features_extractor``, ``optimizer_class``...
+    """
+
+    critic: TD3XCritic
+    critic_target: TD3XCritic
+
+    def make_critic(self, features_extractor: BaseFeaturesExtractor | None = None) -> TD3XCritic:
+        critic_kwargs = self._update_features_extractor(self.critic_kwargs, features_extractor)
+        return TD3XCritic(**critic_kwargs).to(self.device)
+
+
+MlpPolicy = TD3XPolicy
+
+
+class CnnPolicy(TD3XPolicy):
+    """TD3XPolicy for image observations (NatureCNN features extractor), as SB3's ``td3.CnnPolicy``."""
+
+    def __init__(self, *args: Any, features_extractor_class: type[BaseFeaturesExtractor] = NatureCNN, **kwargs: Any):
+        super().__init__(*args, features_extractor_class=features_extractor_class, **kwargs)
+
+
+class MultiInputPolicy(TD3XPolicy):
+    """TD3XPolicy for Dict observations (CombinedExtractor), as SB3's ``td3.MultiInputPolicy``."""
+
+    def __init__(
+        self, *args: Any, features_extractor_class: type[BaseFeaturesExtractor] = CombinedExtractor, **kwargs: Any
+    ):
+        super().__init__(*args, features_extractor_class=features_extractor_class, **kwargs)

@@ -1,0 +1,57 @@
+"""DDPG and the paper's ablations (Fujimoto et al. 2018, Table 2) as TD3X presets: explicit switches, no magic values.
+
+Each preset is a dict of ``TD3X`` keyword arguments; ``TD3X("MlpPolicy", env, **PRESETS["td3_no_cdq"])``.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from stable_baselines3.common.type_aliases import GymEnv
+
+from sb3_td3x.td3x.td3x import TD3X
+
+PRESETS: dict[str, dict[str, Any]] = {
+    # The full algorithm (SB3's TD3 defaults).
+    "td3": {},
+    # DDPG (Lillicrap et al. 2016) as in SB3 and the paper's "our DDPG": one critic, no target smoothing,
+    # no clipped double-Q, actor and targets updated at every gradient step.
+    "ddpg": {
+        "policy_delay": 1,
+        "target_policy_smoothing": False,
+        "clipped_double_q": False,
+        "policy_kwargs": {"n_critics": 1},
+    },
+    # TD3 - TPS: without target policy smoothing.
+    "td3_no_smoothing": {"target_policy_smoothing": False},
+    # TD3 - CDQ: without clipped double-Q learning (a single critic).
+    "td3_no_cdq": {"clipped_double_q": False, "policy_kwargs": {"n_critics": 1}},
+    # TD3 - DP: without delayed policy updates.
+    "td3_no_delay": {"policy_delay": 1},
+}
+
+
+def preset_kwargs(name: str, **overrides: Any) -> dict[str, Any]:
+    """The keyword arguments of preset ``name`` merged with ``overrides`` (``policy_kwargs`` merged key by key)."""
+    if name not in PRESETS:
+        raise ValueError(f"Unknown TD3X preset {name!r}; choose one of {sorted(PRESETS)}.")
+    kwargs = {k: (dict(v) if isinstance(v, dict) else v) for k, v in PRESETS[name].items()}
+    policy_kwargs = {**kwargs.pop("policy_kwargs", {}), **(overrides.pop("policy_kwargs", None) or {})}
+    kwargs.update(overrides)
+    if policy_kwargs:
+        kwargs["policy_kwargs"] = policy_kwargs
+    return kwargs
+
+
+class DDPG(TD3X):
+    """
+    Deep Deterministic Policy Gradient (DDPG) as a TD3X preset: TD3 with its three tricks switched off.
+
+    Lillicrap et al. (2016), "Continuous control with deep reinforcement learning", https://arxiv.org/abs/1509.02971,
+    in the form of SB3's DDPG and of the TD3 paper's "our DDPG": a single critic (``n_critics=1``), no target policy
+    smoothing, no clipped double-Q, and the actor and targets updated at every gradient step (``policy_delay=1``).
+    Every argument of :class:`~sb3_td3x.TD3X` is accepted; the preset's switches can be overridden explicitly.
+    """
+
+    def __init__(self, policy: Any, env: GymEnv | str, **kwargs: Any):
+        super().__init__(policy, env, **preset_kwargs("ddpg", **kwargs))

@@ -1,0 +1,502 @@
+"""TD3X: TD3 as an SB3 ``OffPolicyAlgorithm`` whose every step is an overridable hook."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import Any, ClassVar, TypeVar
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.buffers import ReplayBuffer
+from stable_baselines3.common.noise import ActionNoise
+from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
+from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, ReplayBufferSamples, Schedule, TensorDict
+from stable_baselines3.common.utils import FloatSchedule, get_parameters_by_name, update_learning_rate
+
+from sb3_td3x.td3x.policies import CnnPolicy, MlpPolicy, MultiInputPolicy, TD3XPolicy
+
+SelfTD3X = TypeVar("SelfTD3X", bound="TD3X")
+Obs = th.Tensor | TensorDict
+
+
+@contextmanager
+def frozen(module: th.nn.Module) -> Iterator[None]:
+    """Temporarily switch off ``requires_grad`` on every parameter of ``module``.
+
+    Used by the actor loss so that back-propagating ``-Q_1(s, pi(s))`` leaves the critic without gradient.
+    """
+    params = [p for p in module.parameters() if p.requires_grad]
+    for p in params:
+        p.requires_grad_(False)
+    try:
+        yield
+    finally:
+        for p in params:
+            p.requires_grad_(True)
+
+
+class TD3X(OffPolicyAlgorithm):
+    """
+    Twin Delayed DDPG (TD3), with every step of the algorithm an overridable method.
+
+    Fujimoto, van Hoof and Meger (2018), "Addressing Function Approximation Error in Actor-Critic Methods",
+    ICML. Paper: https://arxiv.org/abs/1802.09477 -- reference code: https://github.com/sfujim/TD3
+
+    ``train()`` reads as the algorithm (step numbers from the course notes in ``shared/seeds``):
+
+    ====  =================================================  =======================================
+    step  what                                               hook
+    ====  =================================================  =======================================
+    4     sample a batch (s, a, r, s', d)                     :meth:`sample_batch`
+    5     a' = pi_phi'(s')                                    :meth:`target_actions`
+    6     a' <- clip(a' + clip(N(0, sigma~), -c, c))          :meth:`target_policy_smoothing_noise`
+    7     Q'_i(s', a') for each critic target                 :meth:`next_q_values`
+    8     min_i Q'_i(s', a')  (clipped double-Q)              :meth:`clipped_double_q`
+    9     y = r + gamma (1 - d) min_i Q'_i(s', a')            :meth:`td_target`
+    10    Q_i(s, a) for each critic                           :meth:`current_q_values`
+    11    L = sum_i MSE(Q_i(s, a), y)                         :meth:`critic_loss`
+    12    gradient step on the critics                        :meth:`optimize_critic`
+    13    every ``policy_delay`` steps: J = -Q_1(s, pi(s))    :meth:`should_update_actor`,
+                                                              :meth:`actor_loss`, :meth:`optimize_actor`
+    14    phi' <- tau phi + (1 - tau) phi'  (actor target)    :meth:`update_actor_target`
+    15    theta'_i <- tau theta_i + (1 - tau) theta'_i        :meth:`update_critic_target`
+    ====  =================================================  =======================================
+
+    Steps 1 to 3 (replay buffer, actor and critic networks and their targets) are built by SB3's
+    ``OffPolicyAlgorithm._setup_model`` and :class:`~sb3_td3x.td3x.policies.TD3XPolicy`.
+
+    Losses return ``(loss, info)`` and never step optimizers or touch target networks. Every constructor argument of
+    SB3's :class:`~stable_baselines3.TD3` has the same name, meaning and default here; the additions are explicit
+    switches (``critic_learning_rate``, ``target_policy_smoothing``, ``clipped_double_q``) so that DDPG and the
+    paper's ablations are presets (:mod:`sb3_td3x.td3x.presets`). Departures from SB3's TD3 and from the paper are
+    listed in ``docs/departures.md``.
+
+    :param policy: The policy model to use (MlpPolicy, CnnPolicy, MultiInputPolicy, or a policy class)
+    :param env: The environment to learn from (if registered in Gym, can be str)
+    :param learning_rate: learning rate for Adam; used for the actor, and for the critics unless
+        ``critic_learning_rate`` is given. It can be a function of the current progress remaining (from 1 to 0)
+    :param buffer_size: size of the replay buffer
+    :param learning_starts: how many steps of the model to collect transitions for before learning starts
+    :param batch_size: Minibatch size for each gradient update
+    :param tau: the soft update coefficient ("Polyak update", between 0 and 1)
+    :param gamma: the discount factor, in [0, 1]
+    :param train_freq: Update the model every ``train_freq`` steps. Alternatively pass a tuple of frequency and unit
+        like ``(5, "step")`` or ``(2, "episode")``.
+    :param gradient_steps: How many gradient steps to do after each rollout (see ``train_freq``).
+        ``-1`` means as many gradient steps as steps done in the environment during the rollout.
+    :param action_noise: the action noise added to the actor's actions for exploration (None by default)
+    :param replay_buffer_class: Replay buffer class to use (for instance ``HerReplayBuffer``).
+        If ``None``, it will be automatically selected.
+    :param replay_buffer_kwargs: Keyword arguments to pass to the replay buffer on creation.
+    :param optimize_memory_usage: Enable a memory efficient variant of the replay buffer
+    :param n_steps: n-step returns (``NStepReplayBuffer``) when ``replay_buffer_class`` is ``None``
+    :param policy_delay: the actor and the target networks are updated once every ``policy_delay`` gradient steps
+        (the critics at every step). ``1`` turns delayed policy updates off.
+    :param target_policy_noise: Standard deviation sigma~ of the Gaussian target policy smoothing noise
+    :param target_noise_clip: Limit c for the absolute value of the target policy smoothing noise
+    :param stats_window_size: Window size for the rollout logging
+    :param tensorboard_log: the log location for tensorboard (if None, no logging)
+    :param policy_kwargs: additional arguments to be passed to the policy on creation (``net_arch``, ``n_critics``...)
+    :param verbose: Verbosity level: 0 for no output, 1 for info messages, 2 for debug messages
+    :param seed: Seed for the pseudo random generators
+    :param device: Device (cpu, cuda, ...) on which the code should be run. "auto" picks the GPU if there is one.
+    :param critic_learning_rate: learning rate (or schedule) of the critics' optimizer;
+        ``None`` uses ``learning_rate`` as SB3's TD3 does
+    :param target_policy_smoothing: add clipped Gaussian noise to the target action (step 6). ``False`` gives
+        DDPG's target action a' = pi_phi'(s')
+    :param clipped_double_q: use the minimum over the critic targets in the TD target (step 8). ``False`` uses the
+        first critic target only, as DDPG does
+    :param _init_setup_model: Whether or not to build the network at the creation of the instance
+    """
+
+    policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
+        "MlpPolicy": MlpPolicy,
+        "CnnPolicy": CnnPolicy,
+        "MultiInputPolicy": MultiInputPolicy,
+    }
+    policy: TD3XPolicy
+
+    def __init__(
+        self,
+        policy: str | type[TD3XPolicy],
+        env: GymEnv | str,
+        learning_rate: float | Schedule = 1e-3,
+        buffer_size: int = 1_000_000,  # 1e6
+        learning_starts: int = 100,
+        batch_size: int = 256,
+        tau: float = 0.005,
+        gamma: float = 0.99,
+        train_freq: int | tuple[int, str] = 1,
+        gradient_steps: int = 1,
+        action_noise: ActionNoise | None = None,
+        replay_buffer_class: type[ReplayBuffer] | None = None,
+        replay_buffer_kwargs: dict[str, Any] | None = None,
+        optimize_memory_usage: bool = False,
+        n_steps: int = 1,
+        policy_delay: int = 2,
+        target_policy_noise: float = 0.2,
+        target_noise_clip: float = 0.5,
+        stats_window_size: int = 100,
+        tensorboard_log: str | None = None,
+        policy_kwargs: dict[str, Any] | None = None,
+        verbose: int = 0,
+        seed: int | None = None,
+        device: th.device | str = "auto",
+        critic_learning_rate: float | Schedule | None = None,
+        target_policy_smoothing: bool = True,
+        clipped_double_q: bool = True,
+        _init_setup_model: bool = True,
+    ):
+        self._check_hyperparameters(
+            learning_rate=learning_rate,
+            critic_learning_rate=critic_learning_rate,
+            buffer_size=buffer_size,
+            learning_starts=learning_starts,
+            batch_size=batch_size,
+            tau=tau,
+            gamma=gamma,
+            gradient_steps=gradient_steps,
+            n_steps=n_steps,
+            policy_delay=policy_delay,
+            target_policy_noise=target_policy_noise,
+            target_noise_clip=target_noise_clip,
+        )
+        super().__init__(
+            policy,
+            env,
+            learning_rate,
+            buffer_size,
+            learning_starts,
+            batch_size,
+            tau,
+            gamma,
+            train_freq,
+            gradient_steps,
+            action_noise=action_noise,
+            replay_buffer_class=replay_buffer_class,
+            replay_buffer_kwargs=replay_buffer_kwargs,
+            optimize_memory_usage=optimize_memory_usage,
+            n_steps=n_steps,
+            policy_kwargs=policy_kwargs,
+            stats_window_size=stats_window_size,
+            tensorboard_log=tensorboard_log,
+            verbose=verbose,
+            device=device,
+            seed=seed,
+            sde_support=False,
+            # Checked below with a ValueError instead of SB3's assertion.
+            supported_action_spaces=None,
+            support_multi_env=True,
+        )
+        if not isinstance(self.action_space, spaces.Box):
+            raise ValueError(
+                f"TD3X needs a continuous action space (gymnasium.spaces.Box), got {self.action_space!r}. "
+                "For discrete actions use DQN, or wrap the env so that it takes continuous actions."
+            )
+        if not np.all(np.isfinite(self.action_space.low)) or not np.all(np.isfinite(self.action_space.high)):
+            raise ValueError(
+                f"TD3X needs a bounded action space, got low={self.action_space.low}, high={self.action_space.high}. "
+                "Wrap the env with gymnasium.wrappers.RescaleAction or clip the action space to finite bounds."
+            )
+
+        self.policy_delay = policy_delay
+        self.target_noise_clip = target_noise_clip
+        self.target_policy_noise = target_policy_noise
+        self.critic_learning_rate = critic_learning_rate
+        self.target_policy_smoothing = target_policy_smoothing
+        self.clipped_double_q = clipped_double_q
+        # Number of actor (delayed) updates done so far; saved with the model.
+        self._n_actor_updates = 0
+
+        if _init_setup_model:
+            self._setup_model()
+
+    # ------------------------------------------------------------------------------------------------------------
+    # Set-up (steps 1-3: replay buffer, actor, critics and their targets)
+    # ------------------------------------------------------------------------------------------------------------
+    @staticmethod
+    def _check_hyperparameters(**values: Any) -> None:
+        """Fail at construction, with a message naming the parameter and its allowed range."""
+
+        def fail(name: str, allowed: str) -> None:
+            raise ValueError(f"TD3X: invalid {name}={values[name]!r}; {name} must be {allowed}.")
+
+        def is_number(x: Any) -> bool:
+            return isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, bool)
+
+        def is_int(x: Any) -> bool:
+            return isinstance(x, (int, np.integer)) and not isinstance(x, bool)
+
+        for name in ("learning_rate", "critic_learning_rate"):
+            value = values[name]
+            if value is None and name == "critic_learning_rate":
+                continue
+            if is_number(value):
+                if not (math.isfinite(value) and value > 0):
+                    fail(name, "a positive finite float (or a schedule: a callable of the progress remaining)")
+            elif not callable(value):
+                fail(name, "a positive float or a schedule (a callable of the progress remaining)")
+        if not is_int(values["buffer_size"]) or values["buffer_size"] < 1:
+            fail("buffer_size", "an integer >= 1")
+        if not is_int(values["learning_starts"]) or values["learning_starts"] < 0:
+            fail("learning_starts", "an integer >= 0")
+        if not is_int(values["batch_size"]) or values["batch_size"] < 1:
+            fail("batch_size", "an integer >= 1")
+        for name in ("tau", "gamma"):
+            if not is_number(values[name]) or not 0.0 <= values[name] <= 1.0:
+                fail(name, "a float in [0, 1]")
+        if not is_int(values["gradient_steps"]) or values["gradient_steps"] < -1:
+            fail("gradient_steps", "an integer >= 0, or -1 (as many gradient steps as environment steps)")
+        if not is_int(values["n_steps"]) or values["n_steps"] < 1:
+            fail("n_steps", "an integer >= 1")
+        if not is_int(values["policy_delay"]) or values["policy_delay"] < 1:
+            fail("policy_delay", "an integer >= 1 (1 updates the actor at every gradient step)")
+        for name in ("target_policy_noise", "target_noise_clip"):
+            if not is_number(values[name]) or not (math.isfinite(values[name]) and values[name] >= 0):
+                fail(name, "a finite float >= 0 (use target_policy_smoothing=False to switch smoothing off)")
+
+    def _setup_model(self) -> None:
+        super()._setup_model()
+        self.critic_lr_schedule = (
+            self.lr_schedule if self.critic_learning_rate is None else FloatSchedule(self.critic_learning_rate)
+        )
+        self._create_aliases()
+        update_learning_rate(self.critic.optimizer, self.critic_lr_schedule(1))
+
+    def _create_aliases(self) -> None:
+        self.actor = self.policy.actor
+        self.actor_target = self.policy.actor_target
+        self.critic = self.policy.critic
+        self.critic_target = self.policy.critic_target
+        # Target networks only ever change through the Polyak update: they never need gradients.
+        self.actor_target.requires_grad_(False)
+        self.critic_target.requires_grad_(False)
+        # Parameters and batch-norm running statistics, in matching order, for the Polyak updates.
+        self._actor_params = list(self.actor.parameters())
+        self._actor_target_params = list(self.actor_target.parameters())
+        self._critic_params = list(self.critic.parameters())
+        self._critic_target_params = list(self.critic_target.parameters())
+        self._actor_batch_norm_stats = get_parameters_by_name(self.actor, ["running_"])
+        self._actor_batch_norm_stats_target = get_parameters_by_name(self.actor_target, ["running_"])
+        self._critic_batch_norm_stats = get_parameters_by_name(self.critic, ["running_"])
+        self._critic_batch_norm_stats_target = get_parameters_by_name(self.critic_target, ["running_"])
+
+    # ------------------------------------------------------------------------------------------------------------
+    # The training loop: a short list of named steps
+    # ------------------------------------------------------------------------------------------------------------
+    def train(self, gradient_steps: int, batch_size: int = 100) -> None:
+        # Switch to train mode (this affects batch norm / dropout)
+        self.policy.set_training_mode(True)
+        self._update_learning_rate([self.actor.optimizer, self.critic.optimizer])
+
+        # Detached tensors, averaged once after the loop: no host-device synchronisation per gradient step.
+        critic_infos: list[dict[str, th.Tensor]] = []
+        actor_infos: list[dict[str, th.Tensor]] = []
+        for _ in range(gradient_steps):
+            self._n_updates += 1
+            batch = self.sample_batch(batch_size)  # step 4
+            target_q = self.compute_target_q(batch)  # steps 5-9
+            critic_loss, critic_info = self.critic_loss(self.current_q_values(batch), target_q)  # steps 10-11
+            self.optimize_critic(critic_loss)  # step 12
+            critic_infos.append(critic_info)
+
+            if self.should_update_actor(self._n_updates):  # step 13: delayed policy update
+                actor_loss, actor_info = self.actor_loss(batch.observations)
+                self.optimize_actor(actor_loss)
+                self._n_actor_updates += 1
+                actor_infos.append(actor_info)
+                self.update_critic_target()  # step 15
+                self.update_actor_target()  # step 14
+
+        self._log_train_infos(critic_infos, actor_infos)
+
+    # Step 4 ------------------------------------------------------------------------------------------------------
+    def sample_batch(self, batch_size: int) -> ReplayBufferSamples:
+        """Step 4: sample a batch of transitions (s, a, r, s', d) from the replay buffer."""
+        return self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)  # type: ignore[union-attr,return-value]
+
+    # Steps 5-9 ---------------------------------------------------------------------------------------------------
+    @th.no_grad()
+    def compute_target_q(self, batch: ReplayBufferSamples) -> th.Tensor:
+        """Steps 5 to 9: the critics' regression target y, without gradient. Returns shape (batch_size, 1)."""
+        next_actions = self.target_actions(batch.next_observations)  # steps 5-6
+        next_q = self.next_q_values(batch.next_observations, next_actions)  # step 7
+        next_q = self.clipped_double_q_value(next_q)  # step 8
+        # For n-step replay, the discount is gamma ** n (when no early termination)
+        discounts = batch.discounts if getattr(batch, "discounts", None) is not None else self.gamma
+        return self.td_target(batch.rewards, batch.dones, discounts, next_q)  # step 9
+
+    def target_actions(self, next_observations: Obs) -> th.Tensor:
+        """Steps 5 and 6: a' = clip(pi_phi'(s') + eps, -1, 1) with eps the target policy smoothing noise.
+
+        Actions live in the policy's normalised space, so the environment's bounds are [-1, 1].
+        """
+        next_actions = self.actor_target(next_observations)  # (batch_size, action_dim)
+        if self.target_policy_smoothing:
+            next_actions = next_actions + self.target_policy_smoothing_noise(next_actions)
+        return next_actions.clamp(-1.0, 1.0)
+
+    def target_policy_smoothing_noise(self, actions: th.Tensor) -> th.Tensor:
+        """Step 6: eps = clip(N(0, sigma~), -c, c), drawn with the shape of the batch of actions (paper eq. 14)."""
+        noise = th.randn_like(actions) * self.target_policy_noise
+        return noise.clamp(-self.target_noise_clip, self.target_noise_clip)
+
+    def next_q_values(self, next_observations: Obs, next_actions: th.Tensor) -> th.Tensor:
+        """Step 7: Q'_i(s', a') for every critic target. Returns shape (n_critics, batch_size, 1)."""
+        return self.critic_target.q_values(next_observations, next_actions)
+
+    def clipped_double_q_value(self, next_q: th.Tensor) -> th.Tensor:
+        """Step 8: min_i Q'_i(s', a') (clipped double Q-learning, paper eq. 10), or Q'_1 when it is switched off.
+
+        :param next_q: shape (n_critics, batch_size, 1)
+        :return: shape (batch_size, 1)
+        """
+        if self.clipped_double_q:
+            return next_q.min(dim=0).values
+        return next_q[0]
+
+    def td_target(
+        self, rewards: th.Tensor, dones: th.Tensor, discounts: th.Tensor | float, next_q: th.Tensor
+    ) -> th.Tensor:
+        """Step 9: y = r + gamma * (1 - d) * min_i Q'_i(s', a'). All tensors of shape (batch_size, 1)."""
+        not_done = 1.0 - dones
+        return rewards + not_done * discounts * next_q
+
+    # Steps 10-12 -------------------------------------------------------------------------------------------------
+    def current_q_values(self, batch: ReplayBufferSamples) -> th.Tensor:
+        """Step 10: Q_i(s, a) for every critic. Returns shape (n_critics, batch_size, 1)."""
+        return self.critic.q_values(batch.observations, batch.actions)
+
+    def critic_loss(self, current_q: th.Tensor, target_q: th.Tensor) -> tuple[th.Tensor, dict[str, th.Tensor]]:
+        """Step 11: L(theta) = sum_i MSE(Q_i(s, a), y), the sum over critics of the mean squared TD error.
+
+        :param current_q: shape (n_critics, batch_size, 1)
+        :param target_q: shape (batch_size, 1), no gradient
+        :return: the loss and detached statistics for logging
+        """
+        td_errors = current_q - target_q.unsqueeze(0)  # (n_critics, batch_size, 1)
+        loss = td_errors.pow(2).mean(dim=(1, 2)).sum()
+        info = {"critic_loss": loss.detach(), "target_q": target_q.mean()}
+        q_means = current_q.detach().mean(dim=(1, 2))  # (n_critics,)
+        for i in range(current_q.shape[0]):
+            info[f"q{i + 1}"] = q_means[i]
+        return loss, info
+
+    def optimize_critic(self, loss: th.Tensor) -> None:
+        """Step 12: one gradient step of the critics' optimizer on the critic loss."""
+        self.critic.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        self.critic.optimizer.step()
+
+    # Step 13 -----------------------------------------------------------------------------------------------------
+    def should_update_actor(self, n_updates: int) -> bool:
+        """Step 13 (delayed policy updates): update the actor and the targets once every ``policy_delay`` steps."""
+        return n_updates % self.policy_delay == 0
+
+    def actor_loss(self, observations: Obs) -> tuple[th.Tensor, dict[str, th.Tensor]]:
+        """Step 13: J(phi) = -mean Q_1(s, pi_phi(s)) (deterministic policy gradient, paper eq. 6).
+
+        The critic is frozen while the loss is built, so back-propagating it leaves the critic without gradient.
+        """
+        with frozen(self.critic):
+            loss = -self.critic.q1_forward(observations, self.actor(observations)).mean()
+        return loss, {"actor_loss": loss.detach()}
+
+    def optimize_actor(self, loss: th.Tensor) -> None:
+        """Step 13: one gradient step of the actor's optimizer on the actor loss."""
+        self.actor.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        self.actor.optimizer.step()
+
+    # Steps 14-15 -------------------------------------------------------------------------------------------------
+    @th.no_grad()
+    def update_actor_target(self) -> None:
+        """Step 14: phi' <- tau * phi + (1 - tau) * phi', and copy the batch-norm running statistics."""
+        self._polyak(self._actor_params, self._actor_target_params, self.tau)
+        self._polyak(self._actor_batch_norm_stats, self._actor_batch_norm_stats_target, 1.0)
+
+    @th.no_grad()
+    def update_critic_target(self) -> None:
+        """Step 15: theta'_i <- tau * theta_i + (1 - tau) * theta'_i, and copy the batch-norm running statistics."""
+        self._polyak(self._critic_params, self._critic_target_params, self.tau)
+        self._polyak(self._critic_batch_norm_stats, self._critic_batch_norm_stats_target, 1.0)
+
+    @staticmethod
+    def _polyak(params: list[th.Tensor], target_params: list[th.Tensor], tau: float) -> None:
+        """target <- target + tau * (param - target), in place, in one fused call for all the tensors."""
+        if len(params) != len(target_params):
+            raise RuntimeError(f"Polyak update: {len(params)} parameters but {len(target_params)} target parameters")
+        if params:
+            th._foreach_lerp_(target_params, params, tau)
+
+    # ------------------------------------------------------------------------------------------------------------
+    # Logging, learning-rate schedules, save/load
+    # ------------------------------------------------------------------------------------------------------------
+    def _update_learning_rate(self, optimizers: list[th.optim.Optimizer] | th.optim.Optimizer) -> None:
+        """The actor follows ``learning_rate``; the critics follow ``critic_learning_rate`` when it is set."""
+        progress = self._current_progress_remaining
+        self.logger.record("train/learning_rate", self.lr_schedule(progress))
+        if self.critic_learning_rate is not None:
+            self.logger.record("train/critic_learning_rate", self.critic_lr_schedule(progress))
+        if not isinstance(optimizers, list):
+            optimizers = [optimizers]
+        for optimizer in optimizers:
+            schedule = self.critic_lr_schedule if optimizer is self.critic.optimizer else self.lr_schedule
+            update_learning_rate(optimizer, schedule(progress))
+
+    def _log_train_infos(self, critic_infos: list[dict[str, th.Tensor]], actor_infos: list[dict[str, th.Tensor]]) -> None:
+        """Average the detached statistics of the gradient steps, with a single device-to-host copy."""
+        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
+        self.logger.record("train/actor_updates", self._n_actor_updates)
+        for infos in (critic_infos, actor_infos):
+            if not infos:
+                continue
+            keys = list(infos[0].keys())
+            means = th.stack([th.stack([info[k] for k in keys]) for info in infos]).float().mean(dim=0).tolist()
+            for key, value in zip(keys, means):
+                name = key if key.endswith("loss") else f"{key}_mean"
+                self.logger.record(f"train/{name}", value)
+
+    def learn(
+        self: SelfTD3X,
+        total_timesteps: int,
+        callback: MaybeCallback = None,
+        log_interval: int = 4,
+        tb_log_name: str = "TD3X",
+        reset_num_timesteps: bool = True,
+        progress_bar: bool = False,
+    ) -> SelfTD3X:
+        return super().learn(
+            total_timesteps=total_timesteps,
+            callback=callback,
+            log_interval=log_interval,
+            tb_log_name=tb_log_name,
+            reset_num_timesteps=reset_num_timesteps,
+            progress_bar=progress_bar,
+        )
+
+    def _excluded_save_params(self) -> list[str]:
+        return [
+            *super()._excluded_save_params(),
+            "actor",
+            "critic",
+            "actor_target",
+            "critic_target",
+            "critic_lr_schedule",
+            "_actor_params",
+            "_actor_target_params",
+            "_critic_params",
+            "_critic_target_params",
+            "_actor_batch_norm_stats",
+            "_actor_batch_norm_stats_target",
+            "_critic_batch_norm_stats",
+            "_critic_batch_norm_stats_target",
+        ]
+
+    def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
+        state_dicts = ["policy", "actor.optimizer", "critic.optimizer"]
+        return state_dicts, []
