@@ -35,6 +35,14 @@ class TD3XPolicy(TD3Policy):
         critic_kwargs = self._update_features_extractor(self.critic_kwargs, features_extractor)
         return TD3XCritic(**critic_kwargs).to(self.device)
 
+    def sb3_state_dict(self) -> dict[str, th.Tensor]:
+        """The state dict in the layout of SB3's ``TD3Policy``."""
+        return self.state_dict()
+
+    def load_sb3_state_dict(self, state_dict: dict[str, th.Tensor]) -> None:
+        """Load a state dict in the layout of SB3's ``TD3Policy``."""
+        self.load_state_dict(state_dict)
+
 
 MlpPolicy = TD3XPolicy
 
@@ -53,3 +61,11 @@ class MultiInputPolicy(TD3XPolicy):
         self, *args: Any, features_extractor_class: type[BaseFeaturesExtractor] = CombinedExtractor, **kwargs: Any
     ):
         super().__init__(*args, features_extractor_class=features_extractor_class, **kwargs)
+
+
+def copy_sb3_policy_weights(source: th.nn.Module, target: TD3XPolicy) -> None:
+    """Copy the weights of an SB3 ``TD3Policy`` (or another ``TD3XPolicy``) into ``target``.
+
+    Used to start TD3X from a model trained with SB3's TD3, and by the equivalence tests.
+    """
+    target.load_sb3_state_dict(source.state_dict())

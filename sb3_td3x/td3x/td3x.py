@@ -165,43 +165,42 @@ class TD3X(OffPolicyAlgorithm):
             target_policy_noise=target_policy_noise,
             target_noise_clip=target_noise_clip,
         )
-        super().__init__(
-            policy,
-            env,
-            learning_rate,
-            buffer_size,
-            learning_starts,
-            batch_size,
-            tau,
-            gamma,
-            train_freq,
-            gradient_steps,
-            action_noise=action_noise,
-            replay_buffer_class=replay_buffer_class,
-            replay_buffer_kwargs=replay_buffer_kwargs,
-            optimize_memory_usage=optimize_memory_usage,
-            n_steps=n_steps,
-            policy_kwargs=policy_kwargs,
-            stats_window_size=stats_window_size,
-            tensorboard_log=tensorboard_log,
-            verbose=verbose,
-            device=device,
-            seed=seed,
-            sde_support=False,
-            # Checked below with a ValueError instead of SB3's assertion.
-            supported_action_spaces=None,
-            support_multi_env=True,
-        )
-        if not isinstance(self.action_space, spaces.Box):
-            raise ValueError(
-                f"TD3X needs a continuous action space (gymnasium.spaces.Box), got {self.action_space!r}. "
-                "For discrete actions use DQN, or wrap the env so that it takes continuous actions."
+        if not isinstance(env, str):
+            self._check_action_space(env.action_space)
+        try:
+            super().__init__(
+                policy,
+                env,
+                learning_rate,
+                buffer_size,
+                learning_starts,
+                batch_size,
+                tau,
+                gamma,
+                train_freq,
+                gradient_steps,
+                action_noise=action_noise,
+                replay_buffer_class=replay_buffer_class,
+                replay_buffer_kwargs=replay_buffer_kwargs,
+                optimize_memory_usage=optimize_memory_usage,
+                n_steps=n_steps,
+                policy_kwargs=policy_kwargs,
+                stats_window_size=stats_window_size,
+                tensorboard_log=tensorboard_log,
+                verbose=verbose,
+                device=device,
+                seed=seed,
+                sde_support=False,
+                # Checked by _check_action_space, with a ValueError instead of an assertion.
+                supported_action_spaces=None,
+                support_multi_env=True,
             )
-        if not np.all(np.isfinite(self.action_space.low)) or not np.all(np.isfinite(self.action_space.high)):
-            raise ValueError(
-                f"TD3X needs a bounded action space, got low={self.action_space.low}, high={self.action_space.high}. "
-                "Wrap the env with gymnasium.wrappers.RescaleAction or clip the action space to finite bounds."
-            )
+        except AssertionError:
+            # SB3 asserts on unsupported action spaces; a gym id only gives us its env here.
+            if getattr(self, "action_space", None) is not None:
+                self._check_action_space(self.action_space)
+            raise
+        self._check_action_space(self.action_space)
 
         self.policy_delay = policy_delay
         self.target_noise_clip = target_noise_clip
@@ -218,6 +217,19 @@ class TD3X(OffPolicyAlgorithm):
     # ------------------------------------------------------------------------------------------------------------
     # Set-up (steps 1-3: replay buffer, actor, critics and their targets)
     # ------------------------------------------------------------------------------------------------------------
+    @staticmethod
+    def _check_action_space(action_space: spaces.Space) -> None:
+        if not isinstance(action_space, spaces.Box):
+            raise ValueError(
+                f"TD3X needs a continuous action space (gymnasium.spaces.Box), got {action_space!r}. "
+                "For discrete actions use DQN, or wrap the env so that it takes continuous actions."
+            )
+        if not (np.all(np.isfinite(action_space.low)) and np.all(np.isfinite(action_space.high))):
+            raise ValueError(
+                f"TD3X needs a bounded action space, got low={action_space.low}, high={action_space.high}. "
+                "Wrap the env with gymnasium.wrappers.RescaleAction or give the action space finite bounds."
+            )
+
     @staticmethod
     def _check_hyperparameters(**values: Any) -> None:
         """Fail at construction, with a message naming the parameter and its allowed range."""

@@ -1,0 +1,32 @@
+"""TD3X learns: Pendulum-v1 reaches a mean deterministic return of at least -250 within 8,000 steps, two seeds."""
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from stable_baselines3.common.evaluation import evaluate_policy
+from stable_baselines3.common.monitor import Monitor
+from stable_baselines3.common.noise import NormalActionNoise
+
+from sb3_td3x import TD3X
+
+THRESHOLD = -250.0
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(900)
+@pytest.mark.parametrize("seed", [0, 1])
+def test_td3x_learns_pendulum(seed):
+    env = gym.make("Pendulum-v1")
+    model = TD3X(
+        "MlpPolicy",
+        env,
+        learning_starts=1_000,
+        action_noise=NormalActionNoise(np.zeros(1), 0.1 * np.ones(1)),
+        seed=seed,
+    )
+    model.learn(total_timesteps=8_000)
+    eval_env = Monitor(gym.make("Pendulum-v1"))
+    eval_env.reset(seed=10_000 + seed)
+    mean_return, std_return = evaluate_policy(model, eval_env, n_eval_episodes=10, deterministic=True)
+    print(f"seed {seed}: mean return {mean_return:.1f} +/- {std_return:.1f}")
+    assert mean_return >= THRESHOLD, f"seed {seed}: {mean_return:.1f} < {THRESHOLD}"

@@ -1,0 +1,60 @@
+"""Bad input fails at construction with a ValueError naming the parameter and the allowed range."""
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+from sb3_td3x import DDPG, TD3X
+
+
+@pytest.mark.parametrize(
+    "kwargs,message",
+    [
+        (dict(policy_delay=0), "policy_delay"),
+        (dict(policy_delay=1.5), "policy_delay"),
+        (dict(target_policy_noise=-0.1), "target_policy_noise"),
+        (dict(target_noise_clip=-1.0), "target_noise_clip"),
+        (dict(target_noise_clip=float("nan")), "target_noise_clip"),
+        (dict(tau=1.5), "tau"),
+        (dict(tau=-0.01), "tau"),
+        (dict(gamma=1.01), "gamma"),
+        (dict(gamma=-0.5), "gamma"),
+        (dict(batch_size=0), "batch_size"),
+        (dict(batch_size=32.0), "batch_size"),
+        (dict(learning_rate=-1e-3), "learning_rate"),
+        (dict(critic_learning_rate=0.0), "critic_learning_rate"),
+        (dict(buffer_size=0), "buffer_size"),
+        (dict(learning_starts=-5), "learning_starts"),
+        (dict(gradient_steps=-2), "gradient_steps"),
+    ],
+)
+def test_bad_hyperparameters_raise_value_error(kwargs, message):
+    with pytest.raises(ValueError, match=message) as info:
+        TD3X("MlpPolicy", "Pendulum-v1", **kwargs)
+    # The message gives the allowed range, not only the name.
+    assert "must be" in str(info.value)
+
+
+def test_discrete_action_space_is_rejected():
+    with pytest.raises(ValueError, match="continuous action space"):
+        TD3X("MlpPolicy", "CartPole-v1")
+
+
+def test_unbounded_action_space_is_rejected():
+    class Unbounded(gym.Env):
+        observation_space = gym.spaces.Box(-1, 1, (2,))
+        action_space = gym.spaces.Box(-np.inf, np.inf, (1,))
+
+    with pytest.raises(ValueError, match="bounded action space"):
+        TD3X("MlpPolicy", Unbounded())
+
+
+def test_ddpg_validates_too():
+    with pytest.raises(ValueError, match="tau"):
+        DDPG("MlpPolicy", "Pendulum-v1", tau=3)
+
+
+@pytest.mark.parametrize("kwargs", [dict(tau=0.0), dict(tau=1.0), dict(gamma=0.0), dict(gamma=1.0), dict(policy_delay=1),
+                                    dict(target_policy_noise=0.0, target_noise_clip=0.0), dict(gradient_steps=-1)])
+def test_edge_values_are_accepted(kwargs):
+    TD3X("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(net_arch=[8]), **kwargs)
