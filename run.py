@@ -1,0 +1,20 @@
+"""Train TD3X on a gymnasium environment: ``python run.py algo=td3 env=ant``.
+
+With no overrides it trains TD3 on Pendulum-v1 for 15k steps (a couple of minutes on 2 CPU cores).
+Several seeds in parallel: ``python run.py -m seed=0,1,2,3,4``; continue a stopped run: ``python run.py resume=<run folder>``.
+See docs/experiments.md.
+"""
+
+import hydra
+from omegaconf import DictConfig
+
+from sb3_td3x.experiment.cli import main as run_main
+
+
+@hydra.main(config_path="conf", config_name="config", version_base="1.3")
+def main(cfg: DictConfig) -> float:
+    return run_main(cfg)
+
+
+if __name__ == "__main__":
+    main()

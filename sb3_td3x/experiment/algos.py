@@ -1,0 +1,53 @@
+"""Build the algorithm named by ``cfg.algo._target_`` (``sb3_td3x.TD3X`` or ``sb3_td3x.DDPG``) from the config."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from hydra.utils import get_class
+from omegaconf import DictConfig
+from stable_baselines3.common.noise import NormalActionNoise
+from stable_baselines3.common.vec_env import VecEnv
+
+from sb3_td3x import TD3X
+from sb3_td3x.experiment.errors import ConfigError
+
+# AlgoConfig fields that are not constructor arguments, or not under the same name.
+_TRANSLATED = ("_target_", "name", "policy", "exploration_noise", "net_arch", "n_critics", "train_freq", "train_freq_unit")
+
+
+def algorithm_class(algo_cfg: DictConfig) -> type[TD3X]:
+    """The class named by ``algo._target_``; it must be :class:`sb3_td3x.TD3X` or a subclass."""
+    try:
+        cls = get_class(algo_cfg._target_)
+    except Exception as error:  # hydra wraps the ImportError/AttributeError in its own exception types
+        raise ConfigError(f"algo._target_={algo_cfg._target_!r} cannot be imported ({error}).") from None
+    if not (isinstance(cls, type) and issubclass(cls, TD3X)):
+        raise ConfigError(f"algo._target_={algo_cfg._target_!r} is not sb3_td3x.TD3X or a subclass of it.")
+    return cls
+
+
+def algorithm_kwargs(algo_cfg: DictConfig, n_actions: int) -> dict[str, Any]:
+    """Constructor keyword arguments of :class:`sb3_td3x.TD3X` for ``algo_cfg`` (without policy, env, seed, device).
+
+    ``exploration_noise`` becomes ``NormalActionNoise(0, sigma)`` (no noise object when sigma is 0), ``net_arch``
+    and ``n_critics`` go into ``policy_kwargs``, ``train_freq`` and ``train_freq_unit`` make SB3's tuple.
+    """
+    kwargs = {key: algo_cfg[key] for key in algo_cfg if key not in _TRANSLATED}
+    if algo_cfg.exploration_noise > 0:
+        sigma = algo_cfg.exploration_noise * np.ones(n_actions, dtype=np.float32)
+        kwargs["action_noise"] = NormalActionNoise(mean=np.zeros(n_actions, dtype=np.float32), sigma=sigma)
+    kwargs["policy_kwargs"] = {"net_arch": list(algo_cfg.net_arch), "n_critics": algo_cfg.n_critics}
+    kwargs["train_freq"] = (algo_cfg.train_freq, algo_cfg.train_freq_unit)
+    return kwargs
+
+
+def build_algorithm(cfg: DictConfig, env: VecEnv) -> TD3X:
+    """A fresh algorithm for ``env``; a ``ValueError`` of the constructor becomes a :class:`ConfigError`."""
+    cls = algorithm_class(cfg.algo)
+    kwargs = algorithm_kwargs(cfg.algo, n_actions=int(np.prod(env.action_space.shape)))
+    try:
+        return cls(cfg.algo.policy, env, seed=cfg.seed, device=cfg.device, **kwargs)
+    except ValueError as error:
+        raise ConfigError(f"The algorithm rejected the config: {error}") from None

@@ -1,0 +1,267 @@
+"""SB3 callbacks of an experiment: periodic evaluation, checkpoints, divergence check, progress bar, stop on signal.
+
+Everything that looks at or saves the model runs at a *rollout boundary* (``_on_rollout_start``, after the
+previous ``train()`` and before the next environment step). Inside ``_on_step`` the environment has stepped
+but SB3 has not stored the transition nor updated ``_last_obs`` yet, so a checkpoint written there could not
+resume exactly. This is also why :class:`PeriodicEvaluation` is not SB3's ``EvalCallback``, which evaluates in
+``_on_step``; it uses the same machinery (``evaluate_policy``, ``sync_envs_normalization``).
+With the default ``train_freq=1`` step a boundary comes after every step; with ``train_freq_unit=episode``
+evaluations and checkpoints wait for the end of the episode.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+import signal
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.evaluation import evaluate_policy
+from stable_baselines3.common.vec_env import VecEnv, sync_envs_normalization
+from tqdm import tqdm
+
+from sb3_td3x.experiment.checkpoints import BEST, LAST, checkpoint_dir, save_checkpoint
+from sb3_td3x.experiment.errors import TrainingDiverged, TrainingInterrupted
+
+EVALUATIONS_CSV = "evaluations.csv"
+EVALUATIONS_JSON = "evaluations.json"
+EVALUATION_FIELDS = ("timesteps", "mean_return", "std_return", "mean_length", "wall_time")
+
+
+class PeriodicEvaluation(BaseCallback):
+    """Evaluate the deterministic policy every ``freq`` environment steps and once more at the end of training.
+
+    Each evaluation runs ``n_episodes`` on ``eval_env``, re-seeded with ``eval_seed`` first, so all evaluations
+    start from the same states. The history is rewritten to ``evaluations.csv`` and ``evaluations.json`` in
+    ``run_dir`` after each evaluation, logged as ``eval/*`` to SB3's logger, and handed to ``listeners``
+    (progress bar, best checkpoint, the caller's ``report``) in order.
+
+    :raises TrainingDiverged: when the mean return is NaN or infinite
+    """
+
+    def __init__(
+        self,
+        eval_env: VecEnv,
+        run_dir: Path,
+        freq: int,
+        n_episodes: int,
+        eval_seed: int,
+        deterministic: bool = True,
+        listeners: list[Callable[[dict[str, float]], None]] | None = None,
+    ) -> None:
+        super().__init__()
+        self.eval_env = eval_env
+        self.run_dir = run_dir
+        self.freq = freq
+        self.n_episodes = n_episodes
+        self.eval_seed = eval_seed
+        self.deterministic = deterministic
+        self.listeners = list(listeners or [])
+        self.history: list[dict[str, float]] = []
+
+    @property
+    def last_timesteps(self) -> int:
+        return int(self.history[-1]["timesteps"]) if self.history else 0
+
+    @property
+    def best_mean_return(self) -> float:
+        return max((row["mean_return"] for row in self.history), default=-math.inf)
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"history": [dict(row) for row in self.history]}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.history = [dict(row) for row in state["history"]]
+        self._write_history()  # drops rows a killed run wrote after its last checkpoint; they will come again
+
+    def _on_step(self) -> bool:
+        return True
+
+    def _on_rollout_start(self) -> None:
+        if self.num_timesteps // self.freq > self.last_timesteps // self.freq:
+            self.evaluate()
+
+    def _on_training_end(self) -> None:
+        if self.num_timesteps > self.last_timesteps:
+            self.evaluate()
+
+    def evaluate(self) -> dict[str, float]:
+        sync_envs_normalization(self.training_env, self.eval_env)
+        self.eval_env.seed(self.eval_seed)
+        returns, lengths = evaluate_policy(
+            self.model, self.eval_env, n_eval_episodes=self.n_episodes, deterministic=self.deterministic, return_episode_rewards=True
+        )
+        result = {
+            "timesteps": self.num_timesteps,
+            "mean_return": float(np.mean(returns)),
+            "std_return": float(np.std(returns)),
+            "mean_length": float(np.mean(lengths)),
+            "wall_time": time.time(),
+        }
+        if not math.isfinite(result["mean_return"]):
+            raise TrainingDiverged("the evaluation mean return", result["mean_return"], self.num_timesteps)
+        self.history.append(result)
+        self._write_history()
+        self.logger.record("eval/mean_reward", result["mean_return"])
+        self.logger.record("eval/std_reward", result["std_return"])
+        self.logger.record("eval/mean_ep_length", result["mean_length"])
+        self.logger.record("eval/best_mean_reward", self.best_mean_return)
+        self.logger.dump(self.num_timesteps)
+        for listener in self.listeners:
+            listener(result)
+        return result
+
+    def _write_history(self) -> None:
+        _write_atomically(self.run_dir / EVALUATIONS_JSON, json.dumps(self.history, indent=1))
+        tmp = self.run_dir / (EVALUATIONS_CSV + ".tmp")
+        with open(tmp, "w", newline="") as file:
+            writer = csv.DictWriter(file, fieldnames=EVALUATION_FIELDS)
+            writer.writeheader()
+            writer.writerows(self.history)
+        os.replace(tmp, self.run_dir / EVALUATIONS_CSV)
+
+
+class Checkpointer(BaseCallback):
+    """Write ``checkpoints/last`` every ``freq`` steps, at the end of training and when a stop is requested;
+    ``checkpoints/best`` when an evaluation beats the best so far (use :meth:`on_evaluation` as a listener).
+
+    A stop (SIGINT/SIGTERM, see :class:`StopOnSignal`) is honoured at the next rollout boundary: the checkpoint is
+    written, then :class:`TrainingInterrupted` is raised out of ``learn()``.
+
+    :param experiment_state: returns the picklable state saved next to the model (evaluation history, ...)
+    """
+
+    def __init__(
+        self,
+        run_dir: Path,
+        freq: int,
+        experiment_state: Callable[[], dict[str, Any]],
+        save_best: bool = True,
+        best_replay_buffer: bool = False,
+    ) -> None:
+        super().__init__()
+        self.run_dir = run_dir
+        self.freq = freq
+        self.experiment_state = experiment_state
+        self.save_best = save_best
+        self.best_replay_buffer = best_replay_buffer
+        self.last_saved_timesteps = -1
+        self.best_mean_return = -math.inf
+        self.stop_signal: tuple[str, int] | None = None
+
+    def request_stop(self, signal_name: str, exit_code: int) -> None:
+        self.stop_signal = (signal_name, exit_code)
+
+    def _on_training_start(self) -> None:
+        # A resumed run must not write again the checkpoint it started from.
+        self.last_saved_timesteps = self.num_timesteps
+
+    def _on_step(self) -> bool:
+        return True
+
+    def _on_rollout_start(self) -> None:
+        if self.num_timesteps // self.freq > self.last_saved_timesteps // self.freq:
+            self.save_last()
+        if self.stop_signal is not None:
+            if self.last_saved_timesteps != self.num_timesteps:
+                self.save_last()
+            raise TrainingInterrupted(*self.stop_signal, num_timesteps=self.num_timesteps, run_dir=str(self.run_dir))
+
+    def _on_training_end(self) -> None:
+        self.save_last()
+
+    def save_last(self) -> Path:
+        self.last_saved_timesteps = self.num_timesteps
+        return save_checkpoint(checkpoint_dir(self.run_dir, LAST), self.model, self.experiment_state())
+
+    def on_evaluation(self, result: dict[str, float]) -> None:
+        if self.save_best and result["mean_return"] > self.best_mean_return:
+            self.best_mean_return = result["mean_return"]
+            save_checkpoint(checkpoint_dir(self.run_dir, BEST), self.model, self.experiment_state(), self.best_replay_buffer)
+
+
+class DivergenceCheck(BaseCallback):
+    """Raise :class:`TrainingDiverged` as soon as a training loss recorded by ``train()`` is NaN or infinite."""
+
+    def _on_step(self) -> bool:
+        return True
+
+    def _on_rollout_start(self) -> None:
+        for key, value in self.logger.name_to_value.items():
+            if key.startswith("train/") and key.endswith("loss") and not math.isfinite(value):
+                raise TrainingDiverged(key, value, self.num_timesteps)
+
+
+class ProgressBar(BaseCallback):
+    """A tqdm bar over environment steps, with steps/s and the latest evaluation (``on_evaluation`` listener)."""
+
+    def __init__(self, total_timesteps: int, description: str) -> None:
+        super().__init__()
+        self.total_timesteps = total_timesteps
+        self.description = description
+        self.bar: tqdm | None = None
+
+    def _on_training_start(self) -> None:
+        self.bar = tqdm(
+            total=self.total_timesteps, initial=self.num_timesteps, desc=self.description, unit="step", dynamic_ncols=True, mininterval=0.5
+        )
+
+    def _on_step(self) -> bool:
+        assert self.bar is not None
+        self.bar.update(self.num_timesteps - self.bar.n)
+        return True
+
+    def on_evaluation(self, result: dict[str, float]) -> None:
+        if self.bar is not None:
+            self.bar.set_postfix_str(f"eval {result['mean_return']:.1f} ± {result['std_return']:.1f} @ {int(result['timesteps'])}")
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+            self.bar = None
+
+
+class StopOnSignal:
+    """While active, SIGINT and SIGTERM ask ``checkpointer`` to save and stop instead of killing the process.
+
+    The first signal restores the previous handlers, so a second Ctrl+C stops at once (the last periodic
+    checkpoint is still there). Outside the main thread (Hydra's joblib launcher uses worker processes, whose
+    main thread is fine; a thread pool is not) signals cannot be caught and this does nothing.
+    """
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self, checkpointer: Checkpointer) -> None:
+        self.checkpointer = checkpointer
+        self.previous: dict[int, Any] = {}
+
+    def __enter__(self) -> StopOnSignal:
+        if threading.current_thread() is threading.main_thread():
+            self.previous = {sig: signal.signal(sig, self._handle) for sig in self.SIGNALS}
+        return self
+
+    def _handle(self, signum: int, frame: Any) -> None:
+        self._restore()
+        self.checkpointer.request_stop(signal.Signals(signum).name, 128 + signum)
+
+    def _restore(self) -> None:
+        for sig, handler in self.previous.items():
+            signal.signal(sig, handler)
+        self.previous = {}
+
+    def __exit__(self, *exc: object) -> None:
+        self._restore()
+
+
+def _write_atomically(path: Path, text: str) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)

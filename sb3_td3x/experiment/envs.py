@@ -1,0 +1,52 @@
+"""Environment factory: the training env, the separately seeded evaluation env, and the env that renders videos."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium as gym
+from omegaconf import DictConfig, OmegaConf
+from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.monitor import Monitor
+from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecNormalize
+
+
+def gym_make_kwargs(env_cfg: DictConfig) -> dict[str, Any]:
+    """Keyword arguments of ``gymnasium.make`` for this env config (besides the id)."""
+    kwargs: dict[str, Any] = OmegaConf.to_container(env_cfg.kwargs, resolve=True)  # type: ignore[assignment]
+    if env_cfg.max_episode_steps is not None:
+        kwargs["max_episode_steps"] = env_cfg.max_episode_steps
+    return kwargs
+
+
+def make_train_env(env_cfg: DictConfig, n_envs: int, seed: int) -> VecEnv:
+    """``n_envs`` Monitor-wrapped copies in a DummyVecEnv (sub-env ``i`` seeded with ``seed + i``).
+
+    Wrapped in ``VecNormalize`` when ``env.normalize_obs`` or ``env.normalize_reward`` is set.
+    DummyVecEnv rather than subprocesses: TD3 is bound by its gradient steps, not by stepping the env.
+    """
+    venv = make_vec_env(env_cfg.id, n_envs=n_envs, seed=seed, env_kwargs=gym_make_kwargs(env_cfg), vec_env_cls=DummyVecEnv)
+    if env_cfg.normalize_obs or env_cfg.normalize_reward:
+        venv = VecNormalize(venv, norm_obs=env_cfg.normalize_obs, norm_reward=env_cfg.normalize_reward)
+    return venv
+
+
+def make_eval_env(env_cfg: DictConfig) -> VecEnv:
+    """One Monitor-wrapped copy for evaluation; its seed is set before every evaluation by the caller.
+
+    When the training env normalises observations, this one gets a frozen ``VecNormalize`` whose statistics
+    are copied from the training env before each evaluation; rewards are never normalised here.
+    """
+    venv: VecEnv = DummyVecEnv([lambda: Monitor(gym.make(env_cfg.id, **gym_make_kwargs(env_cfg)))])
+    if env_cfg.normalize_obs or env_cfg.normalize_reward:
+        venv = VecNormalize(venv, training=False, norm_obs=env_cfg.normalize_obs, norm_reward=False)
+    return venv
+
+
+def make_render_env(env_cfg: DictConfig, width: int, height: int) -> gym.Env:
+    """A single env that renders RGB frames (MuJoCo envs take the frame size; classic control ones do not)."""
+    kwargs = gym_make_kwargs(env_cfg)
+    try:
+        return gym.make(env_cfg.id, render_mode="rgb_array", width=width, height=height, **kwargs)
+    except TypeError:
+        return gym.make(env_cfg.id, render_mode="rgb_array", **kwargs)

@@ -1,0 +1,92 @@
+"""Metric loggers: SB3's logger writing TensorBoard events, plus Weights & Biases when configured.
+
+Every metric goes through SB3's ``Logger`` (``train/*`` and ``rollout/*`` from the algorithm, ``eval/*`` from
+:class:`~sb3_td3x.experiment.callbacks.PeriodicEvaluation`); W&B is one more output format of it, so TensorBoard
+and W&B always show the same numbers. The W&B API key is read by ``wandb`` itself (``WANDB_API_KEY`` or
+``wandb login``) and never passes through the config.
+"""
+
+from __future__ import annotations
+
+import netrc
+import os
+from pathlib import Path
+from typing import Any
+
+from omegaconf import DictConfig
+from stable_baselines3.common.logger import KVWriter, Logger, TensorBoardOutputFormat
+
+WANDB_ID_FILE = "wandb_run_id.txt"
+
+
+class WandbOutputFormat(KVWriter):
+    """SB3 output format that logs scalars to the active W&B run, against ``global_step`` (the env step)."""
+
+    def __init__(self, run: Any) -> None:
+        self.run = run
+        # Steps go back when a run resumes from a checkpoint; a custom step metric accepts that.
+        run.define_metric("global_step")
+        run.define_metric("*", step_metric="global_step")
+
+    def write(self, key_values: dict[str, Any], key_excluded: dict[str, tuple[str, ...]], step: int = 0) -> None:
+        scalars = {
+            key: value
+            for key, value in key_values.items()
+            if isinstance(value, (int, float)) and not (key_excluded.get(key) and "wandb" in key_excluded[key])
+        }
+        if scalars:
+            self.run.log({**scalars, "global_step": step})
+
+    def close(self) -> None:
+        pass
+
+
+def wandb_api_key_configured() -> bool:
+    """True when wandb would find an API key: ``WANDB_API_KEY`` or an ``api.wandb.ai`` entry in ~/.netrc."""
+    if os.environ.get("WANDB_API_KEY"):
+        return True
+    try:
+        return netrc.netrc().authenticators("api.wandb.ai") is not None
+    except (FileNotFoundError, netrc.NetrcParseError):
+        return False
+
+
+def wandb_mode(mode: str) -> str:
+    """``auto`` means online with an API key and offline without; ``WANDB_MODE`` in the environment wins."""
+    if os.environ.get("WANDB_MODE"):
+        return os.environ["WANDB_MODE"]
+    if mode == "auto":
+        return "online" if wandb_api_key_configured() else "offline"
+    return mode
+
+
+def start_wandb(wandb_cfg: DictConfig, run_dir: Path, run_name: str, config: dict[str, Any]) -> Any:
+    """Start (or, for a resumed run, continue) the W&B run of ``run_dir``; its files go to ``run_dir/wandb``."""
+    import wandb  # imported here: it takes a second, and only W&B runs need it
+
+    id_file = run_dir / WANDB_ID_FILE
+    run_id = id_file.read_text().strip() if id_file.is_file() else wandb.util.generate_id()
+    id_file.write_text(run_id)
+    return wandb.init(
+        project=wandb_cfg.project,
+        entity=wandb_cfg.entity,
+        group=wandb_cfg.group,
+        tags=list(wandb_cfg.tags),
+        name=run_name,
+        id=run_id,
+        resume="allow",
+        config=config,
+        dir=str(run_dir),
+        mode=wandb_mode(wandb_cfg.mode),
+        settings=wandb.Settings(console="off", save_code=False, x_disable_stats=True, silent=True),
+    )
+
+
+def build_logger(logger_cfg: DictConfig, run_dir: Path, wandb_run: Any | None) -> Logger:
+    """SB3 ``Logger`` writing TensorBoard events to ``run_dir/tb`` and/or to W&B."""
+    output_formats: list[KVWriter] = []
+    if logger_cfg.tensorboard:
+        output_formats.append(TensorBoardOutputFormat(str(run_dir / "tb")))
+    if wandb_run is not None:
+        output_formats.append(WandbOutputFormat(wandb_run))
+    return Logger(folder=str(run_dir), output_formats=output_formats)

@@ -1,0 +1,67 @@
+"""Pictures of a run: the learning curve PNG and a video of the final policy."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")  # no display needed; set before pyplot is imported
+
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from omegaconf import DictConfig  # noqa: E402
+
+from sb3_td3x.experiment.envs import make_render_env  # noqa: E402
+
+LEARNING_CURVE_PNG = "learning_curve.png"
+
+
+def plot_learning_curve(history: list[dict[str, float]], path: Path, title: str) -> Path:
+    """Mean evaluation return against environment steps, with a band of one standard deviation over episodes."""
+    steps = np.array([row["timesteps"] for row in history])
+    mean = np.array([row["mean_return"] for row in history])
+    std = np.array([row["std_return"] for row in history])
+    fig, ax = plt.subplots(figsize=(6, 4), dpi=100)
+    ax.plot(steps, mean, marker="o", markersize=3)
+    ax.fill_between(steps, mean - std, mean + std, alpha=0.2, linewidth=0)
+    ax.set_xlabel("environment steps")
+    ax.set_ylabel("evaluation return (deterministic policy)")
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
+def record_video(model, env_cfg: DictConfig, video_cfg: DictConfig, path: Path, seed: int) -> Path:
+    """Render ``video_cfg.n_episodes`` episodes of the deterministic policy to ``path`` (GIF or MP4).
+
+    Observation normalisation, when the run used it, is applied with the training statistics. Off-screen
+    MuJoCo rendering needs ``MUJOCO_GL=egl`` or ``MUJOCO_GL=osmesa``.
+    """
+    import imageio.v2 as imageio  # only video runs need it
+
+    env = make_render_env(env_cfg, video_cfg.width, video_cfg.height)
+    vec_normalize = model.get_vec_normalize_env()
+    frames = []
+    try:
+        for episode in range(video_cfg.n_episodes):
+            obs, _ = env.reset(seed=seed + episode)
+            frames.append(env.render())
+            done = False
+            while not done:
+                policy_obs = vec_normalize.normalize_obs(obs) if vec_normalize is not None else obs
+                action, _ = model.predict(policy_obs, deterministic=True)
+                obs, _, terminated, truncated, _ = env.step(action)
+                frames.append(env.render())
+                done = terminated or truncated
+        fps = video_cfg.fps or env.metadata.get("render_fps", 30)
+    finally:
+        env.close()
+    if video_cfg.format == "gif":
+        imageio.mimsave(path, frames, duration=1000 / fps, loop=0)
+    else:
+        imageio.mimsave(path, frames, fps=fps)
+    return path

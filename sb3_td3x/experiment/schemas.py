@@ -1,0 +1,249 @@
+"""Typed schemas of the configuration tree in ``conf/``, and the range checks types cannot express.
+
+The dataclasses are registered in Hydra's ``ConfigStore`` when this module is imported; every YAML in
+``conf/`` extends one of them (``defaults: [base_algo, _self_]``), so a misspelt key or a value of the
+wrong type fails while Hydra composes the config, before anything is built. :func:`check_config` then
+checks ranges and names (``algo.tau`` in (0, 1], a registered gymnasium id, ...) and raises one
+:class:`~sb3_td3x.experiment.errors.ConfigError` listing every problem.
+"""
+
+from __future__ import annotations
+
+import difflib
+import re
+from dataclasses import dataclass, field
+from typing import Any
+
+import gymnasium as gym
+import torch
+from hydra.core.config_store import ConfigStore
+from omegaconf import II, MISSING, DictConfig, OmegaConf
+
+from sb3_td3x.experiment.errors import ConfigError
+
+
+@dataclass
+class AlgoConfig:
+    """Constructor arguments of :class:`sb3_td3x.TD3X` (same names), plus the few that SB3 takes as objects.
+
+    ``exploration_noise`` is the std of the Gaussian action noise N(0, sigma) (SB3's ``action_noise``),
+    ``net_arch`` and ``n_critics`` go into ``policy_kwargs``, and ``train_freq`` / ``train_freq_unit``
+    make SB3's ``(train_freq, unit)`` tuple.
+    """
+
+    _target_: str = "sb3_td3x.TD3X"  # the algorithm class
+    name: str = MISSING  # short name used in run folders and tables, e.g. "td3"
+    policy: str = "MlpPolicy"
+    learning_rate: float = 1e-3
+    critic_learning_rate: float | None = None  # None: same as learning_rate
+    buffer_size: int = 1_000_000
+    learning_starts: int = II("env.learning_starts")  # uniformly random actions, no training, before this step
+    batch_size: int = 100
+    tau: float = 0.005
+    gamma: float = 0.99
+    train_freq: int = 1
+    train_freq_unit: str = "step"  # "step" or "episode"
+    gradient_steps: int = 1  # -1: as many gradient steps as environment steps collected (SB3's convention)
+    policy_delay: int = 2
+    target_policy_noise: float = 0.2
+    target_noise_clip: float = 0.5
+    target_policy_smoothing: bool = True
+    clipped_double_q: bool = True
+    exploration_noise: float = 0.1  # std of the Gaussian exploration noise, in units of the [-1, 1] action scale
+    net_arch: list[int] = field(default_factory=lambda: [400, 300])
+    n_critics: int = 2
+    optimize_memory_usage: bool = False
+
+
+@dataclass
+class EnvConfig:
+    """One gymnasium environment and the per-environment settings of the paper."""
+
+    name: str = MISSING  # short name used in run folders, e.g. "ant"
+    id: str = MISSING  # gymnasium id, e.g. "Ant-v5"
+    total_timesteps: int = 1_000_000
+    learning_starts: int = 1_000
+    eval_freq: int = 5_000
+    max_episode_steps: int | None = None  # None: the id's registered limit
+    normalize_obs: bool = False  # wrap in VecNormalize (statistics are saved with every checkpoint)
+    normalize_reward: bool = False
+    kwargs: dict[str, Any] = field(default_factory=dict)  # passed to gymnasium.make
+
+
+@dataclass
+class EvalConfig:
+    """Periodic deterministic evaluation on a separate environment."""
+
+    freq: int = II("env.eval_freq")  # environment steps between evaluations
+    n_episodes: int = 10
+    deterministic: bool = True
+    seed_offset: int = 1_000_000  # the evaluation env is seeded with seed + seed_offset before every evaluation
+
+
+@dataclass
+class CheckpointConfig:
+    """Checkpoints under ``<run_dir>/checkpoints/{last,best}``."""
+
+    freq: int = 50_000  # environment steps between 'last' checkpoints (also written at the end and on SIGINT/SIGTERM)
+    save_best: bool = True  # write 'best' whenever an evaluation beats the previous best
+    best_replay_buffer: bool = False  # also copy the replay buffer into 'best' (it is always in 'last')
+
+
+@dataclass
+class WandbConfig:
+    project: str = "sb3-td3x"
+    entity: str | None = None
+    group: str | None = None
+    tags: list[str] = field(default_factory=list)
+    mode: str = "auto"  # "auto" (online when an API key is configured, else offline), "online", "offline", "disabled"
+
+
+@dataclass
+class LoggerConfig:
+    name: str = "tensorboard"
+    tensorboard: bool = True  # events under <run_dir>/tb
+    log_interval: int = 4  # episodes between two dumps of SB3's training metrics
+    wandb: WandbConfig | None = None
+
+
+@dataclass
+class VideoConfig:
+    """A video of the final deterministic policy, written to ``<run_dir>/video.<format>``."""
+
+    n_episodes: int = 1
+    fps: int | None = None  # None: the environment's render_fps
+    width: int = 480
+    height: int = 480
+    format: str = "gif"  # "gif" (Pillow) or "mp4" (needs imageio-ffmpeg)
+
+
+@dataclass
+class ExperimentConfig:
+    algo: AlgoConfig = MISSING
+    env: EnvConfig = MISSING
+    eval: EvalConfig = MISSING
+    logger: LoggerConfig = MISSING
+    checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
+    video: VideoConfig | None = None
+    seed: int = 0
+    n_envs: int = 1
+    device: str = "auto"
+    total_timesteps: int = II("env.total_timesteps")
+    resume: str | None = None  # a run folder to continue; the run goes on in that folder with its saved config
+    run_dir: str = "runs/${env.name}/${algo.name}/seed${seed}/${now:%Y-%m-%d_%H-%M-%S}"
+    torch_threads: int | None = 1  # None: torch's default (all cores); 1 suits small MLPs and parallel seeds
+    progress_bar: bool = True
+
+
+def register_configs() -> None:
+    """Register the schemas; ``conf/`` refers to them by these names."""
+    cs = ConfigStore.instance()
+    cs.store(name="base_config", node=ExperimentConfig)
+    cs.store(group="algo", name="base_algo", node=AlgoConfig)
+    cs.store(group="env", name="base_env", node=EnvConfig)
+    cs.store(group="eval", name="base_eval", node=EvalConfig)
+    cs.store(group="logger", name="base_logger", node=LoggerConfig)
+    cs.store(group="video", name="base_video", node=VideoConfig)
+
+
+def _if_resume(resume: str | None, when_resuming: Any, otherwise: Any) -> Any:
+    return otherwise if resume is None else when_resuming
+
+
+register_configs()
+if not OmegaConf.has_resolver("td3x.if_resume"):
+    # conf/config.yaml: a resumed run goes on in the folder it resumes
+    OmegaConf.register_new_resolver("td3x.if_resume", _if_resume)
+
+
+def check_config(cfg: DictConfig) -> None:
+    """Check ranges and names that the types cannot; raise one :class:`ConfigError` listing every problem."""
+    problems: list[str] = []
+
+    def need(condition: bool, message: str) -> None:
+        if not condition:
+            problems.append(message)
+
+    need(cfg.total_timesteps > 0, f"total_timesteps={cfg.total_timesteps} must be a positive number of steps")
+    need(cfg.n_envs >= 1, f"n_envs={cfg.n_envs} must be at least 1")
+    need(cfg.seed >= 0, f"seed={cfg.seed} must be >= 0")
+    need(cfg.torch_threads is None or cfg.torch_threads >= 1, f"torch_threads={cfg.torch_threads} must be >= 1 or null")
+    problems += _device_problems(cfg.device)
+
+    algo = cfg.algo
+    need(algo.learning_rate > 0, f"algo.learning_rate={algo.learning_rate} must be > 0")
+    need(
+        algo.critic_learning_rate is None or algo.critic_learning_rate > 0,
+        f"algo.critic_learning_rate={algo.critic_learning_rate} must be > 0 (or null to use algo.learning_rate)",
+    )
+    need(algo.buffer_size >= 1, f"algo.buffer_size={algo.buffer_size} must be >= 1")
+    need(algo.learning_starts >= 0, f"algo.learning_starts={algo.learning_starts} must be >= 0")
+    need(algo.batch_size >= 1, f"algo.batch_size={algo.batch_size} must be >= 1")
+    need(0 < algo.tau <= 1, f"algo.tau={algo.tau} must be in (0, 1] (the paper uses 0.005)")
+    need(0 <= algo.gamma <= 1, f"algo.gamma={algo.gamma} must be in [0, 1] (the paper uses 0.99)")
+    need(algo.train_freq >= 1, f"algo.train_freq={algo.train_freq} must be >= 1")
+    need(algo.train_freq_unit in ("step", "episode"), f"algo.train_freq_unit={algo.train_freq_unit!r} must be 'step' or 'episode'")
+    need(algo.gradient_steps >= 1 or algo.gradient_steps == -1, f"algo.gradient_steps={algo.gradient_steps} must be >= 1 or -1")
+    need(algo.policy_delay >= 1, f"algo.policy_delay={algo.policy_delay} must be >= 1")
+    need(algo.target_policy_noise >= 0, f"algo.target_policy_noise={algo.target_policy_noise} must be >= 0")
+    need(algo.target_noise_clip >= 0, f"algo.target_noise_clip={algo.target_noise_clip} must be >= 0")
+    need(algo.exploration_noise >= 0, f"algo.exploration_noise={algo.exploration_noise} must be >= 0")
+    need(len(algo.net_arch) > 0 and min(algo.net_arch) >= 1, f"algo.net_arch={list(algo.net_arch)} must list positive layer widths")
+    need(algo.n_critics >= 1, f"algo.n_critics={algo.n_critics} must be >= 1")
+
+    problems += _env_id_problems(cfg.env.id)
+    need(cfg.env.max_episode_steps is None or cfg.env.max_episode_steps >= 1, "env.max_episode_steps must be >= 1 or null")
+    need(cfg.eval.freq >= 1, f"eval.freq={cfg.eval.freq} must be >= 1 environment step")
+    need(cfg.eval.n_episodes >= 1, f"eval.n_episodes={cfg.eval.n_episodes} must be >= 1")
+    need(cfg.checkpoint.freq >= 1, f"checkpoint.freq={cfg.checkpoint.freq} must be >= 1 environment step")
+    if cfg.logger.wandb is not None:
+        mode = cfg.logger.wandb.mode
+        need(mode in ("auto", "online", "offline", "disabled"), f"logger.wandb.mode={mode!r} must be auto, online, offline or disabled")
+    if cfg.video is not None:
+        need(cfg.video.format in ("gif", "mp4"), f"video.format={cfg.video.format!r} must be 'gif' or 'mp4'")
+        need(cfg.video.n_episodes >= 1, f"video.n_episodes={cfg.video.n_episodes} must be >= 1")
+
+    if problems:
+        raise ConfigError("Invalid configuration: " + "; ".join(problems) + ".")
+
+
+def _device_problems(device: str) -> list[str]:
+    if device == "auto":
+        return []
+    try:
+        parsed = torch.device(device)
+    except RuntimeError:
+        return [f"device={device!r} is not a torch device; use auto, cpu, cuda or cuda:N"]
+    if parsed.type == "cuda" and not torch.cuda.is_available():
+        return [f"device={device!r} but this machine has no CUDA GPU; use device=cpu or device=auto"]
+    return []
+
+
+def _env_id_problems(env_id: str) -> list[str]:
+    if env_id in gym.registry:
+        return []
+    close = difflib.get_close_matches(env_id, list(gym.registry), n=3)
+    hint = f" Did you mean {', '.join(close)}?" if close else ""
+    return [f"env.id={env_id!r} is not a registered gymnasium environment.{hint}"]
+
+
+_SECRET_KEY = re.compile(r"(api_?key|token|secret|password|credential)", re.IGNORECASE)
+REDACTED = "<redacted>"
+
+
+def public_config(cfg: DictConfig) -> dict[str, Any]:
+    """The resolved config as plain containers, with any value under a credential-like key replaced by ``<redacted>``.
+
+    This is what is saved in the run folder and sent to W&B. The schemas have no credential field (W&B reads its
+    key from ``WANDB_API_KEY`` or ``wandb login``), but free-form dicts such as ``env.kwargs`` could receive one.
+    """
+    container = OmegaConf.to_container(cfg, resolve=True, throw_on_missing=True)
+    return _redact(container)  # type: ignore[return-value]
+
+
+def _redact(node: Any) -> Any:
+    if isinstance(node, dict):
+        return {key: REDACTED if _SECRET_KEY.search(str(key)) else _redact(value) for key, value in node.items()}
+    if isinstance(node, list):
+        return [_redact(value) for value in node]
+    return node
