@@ -1,0 +1,177 @@
+"""``python -m sb3_td3x.sweeps``: run (or continue) an Optuna search over the configs ``run.py`` trains."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+from pathlib import Path
+
+from sb3_td3x.sweeps.errors import SweepError
+
+logger = logging.getLogger("sb3_td3x.sweeps")
+
+EXAMPLES = """\
+examples:
+  python -m sb3_td3x.sweeps sweeps/pendulum.yaml                      # SQLite in runs/sweeps/td3x-pendulum/
+  python -m sb3_td3x.sweeps sweeps/pendulum.yaml                      # again: continues the same study
+  python -m sb3_td3x.sweeps sweeps/pendulum.yaml --n-trials 60        # grow it to 60 trials
+  python -m sb3_td3x.sweeps sweeps/hopper.yaml device=cpu --storage postgresql://td3x:td3x@db-host/td3x
+  python -m sb3_td3x.sweeps sweeps/hopper.yaml --storage postgresql://... --launcher sweeps/launcher/slurm.yaml --workers 16
+  python -m sb3_td3x.sweeps sweeps/pendulum.yaml --report             # write the results files only
+
+Every worker pointed at the same --storage and study name shares one budget of --n-trials trials.
+Results (in --output-dir/<study>): summary.txt, trials.csv, best_overrides.txt, tuned/best.yaml, plots/*.png.
+"""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="python -m sb3_td3x.sweeps",
+        description="Tune TD3X with Optuna: each trial composes conf/ like run.py, reports its periodic "
+        "evaluations, and is pruned when the pruner says so. Studies persist in the storage; run the same command "
+        "again (or on more machines) to continue.",
+        epilog=EXAMPLES,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("sweep_file", type=Path, help="search-space file, e.g. sweeps/pendulum.yaml")
+    parser.add_argument("overrides", nargs="*", help="Hydra overrides for every trial, after the file's (e.g. device=cpu)")
+    parser.add_argument("--study-name", help="default: the file's study_name")
+    parser.add_argument(
+        "--storage",
+        help="sqlite:///path.db, postgresql://user:password@host:5432/db, any SQLAlchemy URL, or a journal file "
+        "journal:path.log; default: the file's storage, else sqlite:///<output-dir>/<study>/optuna.db",
+    )
+    parser.add_argument("--n-trials", type=int, help="trials the study holds in total, shared by all workers (default: the file's)")
+    parser.add_argument("--output-dir", type=Path, default=Path("runs/sweeps"), help="study folders go here (default: %(default)s)")
+    parser.add_argument("--config-dir", type=Path, help="the conf/ folder run.py composes (default: the repository's conf/)")
+    parser.add_argument("--heartbeat-interval", type=int, default=60, help="seconds between heartbeats of a running trial (default: %(default)s)")
+    parser.add_argument("--grace-period", type=int, help="seconds without heartbeat before a trial is marked FAIL (default: twice the interval)")
+    parser.add_argument("--retry-stale", type=int, default=0, help="queue a dead worker's trial again up to N times (default: %(default)s)")
+    parser.add_argument("--max-consecutive-failures", type=int, default=5, help="stop a worker after N crashed trials in a row (default: %(default)s)")
+    parser.add_argument("--report", action="store_true", help="only write the results of the study in the storage")
+    parser.add_argument("--launcher", type=Path, help="submit --workers jobs with this launcher file (sweeps/launcher/*.yaml)")
+    parser.add_argument("--workers", type=int, default=1, help="number of worker jobs to submit with --launcher (default: %(default)s)")
+    parser.add_argument("--wait", action="store_true", help="with --launcher: wait for the jobs and report their exit")
+    parser.add_argument("-q", "--quiet", action="store_true", help="log only warnings")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_intermixed_args(argv)
+    _setup_logging(args.quiet)
+    try:
+        return _run(args)
+    except SweepError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("Interrupted before a trial started; the study is unchanged. Run the same command to continue.", file=sys.stderr)
+        return 130
+
+
+def _run(args: argparse.Namespace) -> int:
+    import optuna
+
+    from sb3_td3x.sweeps.objective import DEFAULT_CONFIG_DIR, TrialObjective, check_composes
+    from sb3_td3x.sweeps.results import write_results
+    from sb3_td3x.sweeps.spec import load_sweep
+    from sb3_td3x.sweeps.storage import default_storage_url, open_storage
+    from sb3_td3x.sweeps.worker import SweepInterrupted, open_study, run_worker
+
+    spec = load_sweep(args.sweep_file)
+    study_name = args.study_name or spec.study_name
+    n_trials = args.n_trials if args.n_trials is not None else spec.n_trials
+    if n_trials < 1:
+        raise SweepError(f"--n-trials must be at least 1, got {n_trials}")
+    study_dir = (args.output_dir / study_name).resolve()
+    config_dir = (args.config_dir or DEFAULT_CONFIG_DIR).resolve()
+    if not (config_dir / "config.yaml").is_file():
+        raise SweepError(f"{config_dir} has no config.yaml; pass --config-dir pointing at the conf/ folder run.py uses")
+    storage_url = args.storage or spec.storage or default_storage_url(study_dir)
+
+    if args.launcher is not None:
+        return _launch(args, storage_url, study_dir, study_name)
+
+    check_composes(spec, config_dir, args.overrides)
+    study_storage = open_storage(storage_url, study_name, args.heartbeat_interval, args.grace_period, args.retry_stale)
+    optuna.logging.set_verbosity(optuna.logging.WARNING)  # our own log lines say what happens to each trial
+    study = open_study(spec, study_storage, study_name, spec.overrides + args.overrides)
+
+    def finish(finished_study: optuna.Study) -> None:
+        files = write_results(finished_study, study_dir, config_dir, study_storage.display_url, study_storage.dashboard_command())
+        print(files.summary)
+        if files.best_overrides is not None:
+            print(f"best overrides: {files.best_overrides}   (python run.py $(cat {files.best_overrides}))")
+            print(f"as a config:    python run.py -cd {study_dir} +tuned=best")
+        print(f"plots:          {', '.join(str(p) for p in files.plots) or 'none yet (too few finished trials)'}")
+
+    if args.report:
+        finish(study)
+        return 0
+
+    logger.info("study %s in %s: %d trials wanted, %d there", study_name, study_storage.display_url, n_trials, len(study.trials))
+    previous = signal.signal(signal.SIGTERM, _raise_keyboard_interrupt)  # scancel / preemption: stop like Ctrl-C
+    try:
+        summary = run_worker(study, spec, study_storage, TrialObjective(spec, config_dir, args.overrides, study_dir), n_trials,
+                             args.max_consecutive_failures, on_finished=finish)
+    except SweepInterrupted as err:
+        print(str(err), file=sys.stderr)
+        return 130
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    if not summary.ran:
+        logger.info("study %s already holds its %d trials; pass a larger --n-trials to grow it", study_name, n_trials)
+    return 0
+
+
+def _launch(args: argparse.Namespace, storage_url: str, study_dir: Path, study_name: str) -> int:
+    from sb3_td3x.sweeps.launch import load_launcher, submit_workers
+    from sb3_td3x.sweeps.storage import open_storage
+
+    if args.workers < 1:
+        raise SweepError(f"--workers must be at least 1, got {args.workers}")
+    open_storage(storage_url, study_name, args.heartbeat_interval, args.grace_period, args.retry_stale)  # fail here, not in N jobs
+    cluster, executor_params = load_launcher(args.launcher, study_dir / "jobs", f"sweep-{study_name}")
+    if storage_url.startswith("sqlite") and cluster == "slurm":
+        logger.warning("SQLite on a cluster's shared file system is fragile with many workers; prefer --storage postgresql://...")
+    worker_argv = _worker_argv(args, storage_url, study_dir)
+    jobs = submit_workers(cluster, executor_params, args.workers, main, worker_argv)
+    print(f"submitted {len(jobs)} {cluster} worker job(s): {', '.join(str(job.job_id) for job in jobs)}")
+    print(f"job logs: {study_dir / 'jobs'}; the last worker writes the results into {study_dir}")
+    if not args.wait:
+        return 0
+    codes = [job.result() for job in jobs]
+    print(f"workers exited with {codes}")
+    return max(codes)
+
+
+def _worker_argv(args: argparse.Namespace, storage_url: str, study_dir: Path) -> list[str]:
+    """The command line each job runs: this one, less the launcher options, with absolute paths on every node."""
+    config_dir = (args.config_dir or Path(__file__).resolve().parents[2] / "conf").resolve()
+    if storage_url.startswith("sqlite:///") and not storage_url.startswith("sqlite:////"):
+        storage_url = f"sqlite:///{Path(storage_url.removeprefix('sqlite:///')).resolve()}"
+    worker_argv = [str(args.sweep_file.resolve()), *args.overrides, "--storage", storage_url,
+                   "--study-name", study_dir.name, "--output-dir", str(study_dir.parent), "--config-dir", str(config_dir),
+                   "--heartbeat-interval", str(args.heartbeat_interval), "--retry-stale", str(args.retry_stale),
+                   "--max-consecutive-failures", str(args.max_consecutive_failures)]
+    if args.n_trials is not None:
+        worker_argv += ["--n-trials", str(args.n_trials)]
+    if args.grace_period is not None:
+        worker_argv += ["--grace-period", str(args.grace_period)]
+    if args.quiet:
+        worker_argv.append("--quiet")
+    return worker_argv
+
+
+def _raise_keyboard_interrupt(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt
+
+
+def _setup_logging(quiet: bool) -> None:
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("[%(asctime)s sweep] %(message)s", datefmt="%H:%M:%S"))
+    logger.handlers[:] = [handler]
+    logger.setLevel(logging.WARNING if quiet else logging.INFO)
+    logger.propagate = False

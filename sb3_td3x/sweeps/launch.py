@@ -1,0 +1,79 @@
+"""Start sweep workers as cluster jobs with submitit, configured like Hydra's submitit launcher.
+
+A launcher file is a ``hydra/launcher`` config of ``hydra-submitit-launcher`` (``sweeps/launcher/slurm.yaml``,
+``sweeps/launcher/local.yaml``): the same ``_target_`` and fields, checked against the plugin's own schema
+(``SlurmQueueConf`` / ``LocalQueueConf``) and turned into submitit parameters the way the plugin does. What differs
+is what a job runs: not one Hydra job per override combination, but one sweep worker
+(:func:`sb3_td3x.sweeps.worker.run_worker`), which takes trials from the shared study until its budget is spent.
+Hydra's launcher cannot run that: its jobs never see the Optuna trial, so they could not report or be pruned.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
+
+from sb3_td3x.sweeps.errors import SweepSpecError
+
+_LAUNCHERS = {
+    "hydra_plugins.hydra_submitit_launcher.submitit_launcher.SlurmLauncher": "slurm",
+    "hydra_plugins.hydra_submitit_launcher.submitit_launcher.LocalLauncher": "local",
+}
+
+
+def load_launcher(path: str | Path, job_folder: Path, job_name: str) -> tuple[str, dict[str, Any]]:
+    """Read a launcher file; return the submitit cluster (``slurm`` or ``local``) and its executor parameters.
+
+    :param job_folder: where submitit writes job scripts and logs (``%j`` is the job id)
+    :param job_name: the jobs' name in the queue
+    """
+    source = Path(path)
+    try:
+        from hydra_plugins.hydra_submitit_launcher.config import BaseQueueConf, LocalQueueConf, SlurmQueueConf
+    except ImportError:
+        raise SweepSpecError("--launcher needs hydra-submitit-launcher: pip install 'sb3-td3x[cluster]'") from None
+    if not source.is_file():
+        raise SweepSpecError(f"launcher file {source} does not exist (the ready ones are in sweeps/launcher/)")
+    try:
+        loaded = OmegaConf.load(source)
+    except Exception as err:
+        raise SweepSpecError(f"launcher file {source} is not valid YAML: {err}") from None
+    target = loaded.get("_target_") if isinstance(loaded, DictConfig) else None
+    if target not in _LAUNCHERS:
+        raise SweepSpecError(f"{source}: _target_ must be one of {sorted(_LAUNCHERS)}, as in Hydra's submitit launcher")
+    cluster = _LAUNCHERS[target]
+    schema = SlurmQueueConf if cluster == "slurm" else LocalQueueConf
+    try:
+        merged = OmegaConf.merge(OmegaConf.structured(schema), loaded)
+        merged.submitit_folder = str(job_folder / "%j")  # the plugin's defaults interpolate ${hydra:...}
+        merged.name = job_name
+        params = OmegaConf.to_container(merged, resolve=True)
+    except OmegaConfBaseException as err:
+        raise SweepSpecError(f"{source}: {str(err).splitlines()[0]}") from None
+    assert isinstance(params, dict)
+    params.pop("_target_")
+    # As in hydra_submitit_launcher.submitit_launcher.BaseSubmititLauncher.launch: shared fields keep their
+    # names, the cluster's own fields get its prefix (partition -> slurm_partition).
+    base = set(OmegaConf.structured(BaseQueueConf).keys())
+    executor_params: dict[str, Any] = {"folder": params.pop("submitit_folder")}
+    if "max_num_timeout" in params:
+        executor_params[f"{cluster}_max_num_timeout"] = params.pop("max_num_timeout")
+    executor_params["parameters"] = {key if key in base else f"{cluster}_{key}": value for key, value in params.items()}
+    return cluster, executor_params
+
+
+def submit_workers(
+    cluster: str, executor_params: dict[str, Any], n_workers: int, job: Callable[[list[str]], int], argv: list[str]
+) -> list[Any]:
+    """Submit ``n_workers`` jobs that each run ``job(argv)``; return submitit's job handles."""
+    import submitit
+
+    params = dict(executor_params)
+    parameters = params.pop("parameters")
+    executor = submitit.AutoExecutor(cluster=cluster, **params)
+    executor.update_parameters(**parameters)
+    return executor.map_array(job, [list(argv) for _ in range(n_workers)])

@@ -1,0 +1,192 @@
+"""One trial: draw the parameters, compose the same config ``run.py`` would, train, and report evaluations.
+
+The trial's Hydra overrides are the sweep file's ``overrides``, the command line's, one ``path=value`` per searched
+parameter, ``seed=<sweep seed + trial number>`` and ``run_dir=<study folder>/trial_NNNN``. They are stored on the
+trial (``user_attrs``) before training starts, so every trial, finished or not, can be re-run by hand::
+
+    python run.py <the trial's overrides>
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import socket
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import optuna
+from omegaconf import DictConfig
+
+from sb3_td3x.sweeps.errors import SweepSpecError
+from sb3_td3x.sweeps.spec import SweepSpec
+
+#: ``run_experiment(cfg, report)``: trains, calls ``report(num_timesteps, mean_return)`` after every evaluation,
+#: returns the final evaluation's mean return.
+TrainFn = Callable[..., float]
+
+DEFAULT_CONFIG_DIR = Path(__file__).resolve().parents[2] / "conf"
+
+#: Settings every trial gets: no progress bar interleaving with other workers' output.
+TRIAL_DEFAULTS = ["progress_bar=false"]
+
+
+def compose_config(config_dir: Path, overrides: list[str]) -> DictConfig:
+    """Compose ``conf/config.yaml`` with ``overrides``, as ``python run.py <overrides>`` does."""
+    import sb3_td3x.experiment.schemas  # noqa: F401  (registers the schemas and resolvers that conf/ uses)
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(config_dir.resolve()), version_base="1.3", job_name="sweep"):
+        return compose("config", overrides=overrides)
+
+
+def override_key(override: str) -> str:
+    """The config path or group an override sets: ``algo.tau`` for ``algo.tau=0.01``, ``env`` for ``env=ant``."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    return OverridesParser.create().parse_override(override).key_or_group
+
+
+def check_composes(spec: SweepSpec, config_dir: Path, extra_overrides: list[str]) -> None:
+    """Compose one trial's config before any trial runs, so that a wrong path fails now with a clear message."""
+    from hydra.errors import HydraException, OverrideParseException
+    from omegaconf.errors import OmegaConfBaseException
+
+    from sb3_td3x.experiment.errors import ConfigError
+    from sb3_td3x.experiment.schemas import check_config
+
+    fixed = spec.overrides + extra_overrides
+    try:
+        fixed_keys = {override_key(o).lstrip("+~") for o in fixed}
+    except OverrideParseException as err:
+        raise SweepSpecError(f"{spec.source}: an override is not in Hydra's syntax: {err}") from None
+    clash = sorted(fixed_keys & set(spec.searched_paths))
+    if clash:
+        raise SweepSpecError(
+            f"{spec.source}: {', '.join(clash)} is both searched (search_space) and fixed (overrides); remove one of the two"
+        )
+    for reserved in ("seed", "run_dir"):
+        if reserved in spec.searched_paths or reserved in fixed_keys:
+            raise SweepSpecError(
+                f"{spec.source}: {reserved} is set by the sweep for every trial (seed = sweep seed + trial number, "
+                f"run_dir = the trial's folder); remove it from the overrides/search_space"
+            )
+    example = [p.override(p.example_value()) for p in spec.params]
+    try:
+        cfg = compose_config(config_dir, fixed + example + TRIAL_DEFAULTS + ["run_dir=/tmp/sweep-check"])
+        check_config(cfg)
+    except (HydraException, OmegaConfBaseException, ConfigError) as err:
+        message = str(err).strip().splitlines()
+        raise SweepSpecError(
+            f"{spec.source}: the overrides and search-space paths do not compose with {config_dir}: "
+            f"{' '.join(message[:3])}. Search-space keys must be existing config paths (see python run.py --cfg job)."
+        ) from None
+
+
+@dataclass
+class TrialResult:
+    """What :class:`TrialObjective` hands back to the worker, which tells it to Optuna."""
+
+    state: optuna.trial.TrialState
+    value: float | None = None
+    reason: str | None = None  #: why a trial was pruned or failed; stored as the trial's ``fail_reason``
+    interrupted: bool = False  #: stopped by Ctrl-C / SIGTERM: the worker re-queues the trial and stops
+
+
+class TrialObjective:
+    """Runs one trial of a sweep and turns every way it can end into a :class:`TrialResult`.
+
+    :param spec: the sweep file
+    :param config_dir: the ``conf/`` folder ``run.py`` composes
+    :param extra_overrides: overrides given on the sweep's command line, applied after the sweep file's
+    :param study_dir: the study folder; trial ``k`` trains in ``study_dir/trial_000k``
+    :param train_fn: the training function; :func:`sb3_td3x.experiment.runner.run_experiment` by default
+    """
+
+    def __init__(
+        self,
+        spec: SweepSpec,
+        config_dir: Path,
+        extra_overrides: list[str],
+        study_dir: Path,
+        train_fn: TrainFn | None = None,
+    ) -> None:
+        self.spec = spec
+        self.config_dir = config_dir
+        self.extra_overrides = list(extra_overrides)
+        self.study_dir = study_dir
+        self.train_fn = train_fn
+
+    def overrides(self, trial: optuna.Trial, values: dict[str, Any]) -> list[str]:
+        searched = [param.override(values[param.path]) for param in self.spec.params]
+        return (
+            self.spec.overrides
+            + self.extra_overrides
+            + searched
+            + TRIAL_DEFAULTS
+            + [f"seed={self.trial_seed(trial.number)}", f"run_dir={self.run_dir(trial.number)}"]
+        )
+
+    def trial_seed(self, number: int) -> int:
+        return self.spec.seed + number
+
+    def run_dir(self, number: int) -> Path:
+        return (self.study_dir / f"trial_{number:04d}").resolve()
+
+    def __call__(self, trial: optuna.Trial) -> TrialResult:
+        from sb3_td3x.experiment.errors import TrainingDiverged, TrainingInterrupted
+
+        values = {param.path: param.suggest(trial) for param in self.spec.params}
+        overrides = self.overrides(trial, values)
+        run_dir = self.run_dir(trial.number)
+        trial.set_user_attr("overrides", overrides)
+        trial.set_user_attr("seed", self.trial_seed(trial.number))
+        trial.set_user_attr("run_dir", str(run_dir))
+        trial.set_user_attr("worker", f"{socket.gethostname()}:{os.getpid()}")
+
+        evaluations: list[float] = []
+
+        def report(num_timesteps: int, mean_return: float) -> None:
+            evaluations.append(mean_return)
+            trial.report(mean_return, step=num_timesteps)
+            if trial.should_prune():
+                raise optuna.TrialPruned(
+                    f"pruned by {type(trial.study.pruner).__name__} at step {num_timesteps} "
+                    f"(evaluation mean return {mean_return:.2f})"
+                )
+
+        try:
+            cfg = compose_config(self.config_dir, overrides)
+            final_return = self.train(cfg, report)
+        except optuna.TrialPruned as pruned:
+            return TrialResult(optuna.trial.TrialState.PRUNED, reason=str(pruned))
+        except TrainingDiverged as err:
+            return TrialResult(optuna.trial.TrialState.FAIL, reason=f"diverged: {err.what} became {err.value} at step {err.num_timesteps}")
+        except (KeyboardInterrupt, TrainingInterrupted) as err:
+            signal_name = getattr(err, "signal_name", "SIGINT")
+            return TrialResult(optuna.trial.TrialState.FAIL, reason=f"interrupted by {signal_name}", interrupted=True)
+        except Exception as err:  # any crash in one trial is recorded on it; the study goes on
+            self._write_traceback(run_dir)
+            first_line = (str(err).strip().splitlines() or [""])[0]
+            return TrialResult(optuna.trial.TrialState.FAIL, reason=f"{type(err).__name__}: {first_line}")
+
+        value = max(evaluations) if self.spec.metric == "eval/best_mean_return" and evaluations else final_return
+        if value is None or not math.isfinite(value):
+            return TrialResult(optuna.trial.TrialState.FAIL, reason=f"diverged: the metric {self.spec.metric} is {value}")
+        return TrialResult(optuna.trial.TrialState.COMPLETE, value=float(value))
+
+    def train(self, cfg: DictConfig, report: Callable[[int, float], None]) -> float:
+        if self.train_fn is None:
+            from sb3_td3x.experiment.runner import run_experiment
+
+            self.train_fn = run_experiment
+        return self.train_fn(cfg, report=report)
+
+    @staticmethod
+    def _write_traceback(run_dir: Path) -> None:
+        import traceback
+
+        run_dir.mkdir(parents=True, exist_ok=True)
+        (run_dir / "sweep_error.txt").write_text(traceback.format_exc())

@@ -1,0 +1,206 @@
+"""A sweep worker: takes trials from the shared study until its budget of trials is spent.
+
+Any number of workers, on one machine or many, may run against the same storage and study name. Each loop:
+
+1. under the storage's budget lock (:mod:`sb3_td3x.sweeps.storage`), mark trials of dead workers FAIL (heartbeat),
+   count the study's trials and, if fewer than ``n_trials`` (or a trial is queued), create the next one;
+2. run it (:class:`~sb3_td3x.sweeps.objective.TrialObjective`) while a heartbeat thread keeps it alive;
+3. tell Optuna how it ended: COMPLETE with its value, PRUNED, or FAIL with ``fail_reason`` in its user attributes.
+
+When the budget is spent the worker waits for trials still running elsewhere to end (or to be marked FAIL by the
+heartbeat), and the last worker writes the results (:mod:`sb3_td3x.sweeps.results`). Ctrl-C (or SIGTERM) marks the
+running trial FAIL ("interrupted"), queues it again with the same parameters, and stops the worker: running the
+same command again continues the study.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+import warnings
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import optuna
+from optuna.storages import RetryFailedTrialCallback, fail_stale_trials
+from optuna.trial import FrozenTrial, TrialState
+
+from sb3_td3x.sweeps.errors import SweepError
+from sb3_td3x.sweeps.objective import TrialObjective, TrialResult
+from sb3_td3x.sweeps.spec import SweepSpec
+from sb3_td3x.sweeps.storage import StudyStorage, heartbeat
+
+logger = logging.getLogger(__name__)
+
+UNFINISHED = (TrialState.RUNNING, TrialState.WAITING)
+
+
+class SweepInterrupted(Exception):
+    """The worker was stopped by Ctrl-C or SIGTERM; the interrupted trial is queued again."""
+
+    def __init__(self, trial_number: int | None) -> None:
+        self.trial_number = trial_number
+        which = f"trial {trial_number} was marked FAIL (interrupted) and queued again; " if trial_number is not None else ""
+        super().__init__(f"Interrupted: {which}run the same command again to continue the study.")
+
+
+@dataclass
+class WorkerSummary:
+    """What one worker did, for its last log line and for tests."""
+
+    ran: list[int]  #: numbers of the trials this worker ran
+    study_finished: bool  #: no trial left to run or running anywhere; this worker wrote the results
+
+
+def open_study(spec: SweepSpec, study_storage: StudyStorage, study_name: str, fixed_overrides: list[str]) -> optuna.Study:
+    """Create the study, or load it when it exists; check that it tunes the same thing in the same direction."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+        study = optuna.create_study(
+            storage=study_storage.storage,
+            study_name=study_name,
+            direction=spec.direction,
+            sampler=spec.make_sampler(),
+            pruner=spec.make_pruner(),
+            load_if_exists=True,
+        )
+    if study.direction.name.lower() != spec.direction:
+        raise SweepError(
+            f"study {study_name!r} in {study_storage.display_url} was created to {study.direction.name.lower()}, "
+            f"but {spec.source} says direction: {spec.direction}; use another --study-name"
+        )
+    space = {param.path: repr(param.distribution) for param in spec.params}
+    recorded = study.user_attrs.get("search_space")
+    if recorded is None:
+        study.set_user_attr("search_space", space)
+        study.set_user_attr("metric", spec.metric)
+        study.set_user_attr("sweep_file", str(spec.source))
+        study.set_user_attr("overrides", fixed_overrides)
+    elif recorded != space or study.user_attrs.get("overrides") != fixed_overrides:
+        logger.warning(
+            "study %s was started with another search space or other fixed overrides than %s now gives; "
+            "earlier trials keep theirs (see their user attributes), new trials use the new ones",
+            study_name,
+            spec.source,
+        )
+    return study
+
+
+def budget_used(trials: list[FrozenTrial]) -> int:
+    """Trials that count against ``n_trials``: all of them, except failed ones that were queued again."""
+    retried = {RetryFailedTrialCallback.retried_trial_number(t) for t in trials} - {None}
+    return len(trials) - len(retried)
+
+
+def claim_trial(study: optuna.Study, spec: SweepSpec, study_storage: StudyStorage, n_trials: int) -> optuna.Trial | None:
+    """Create the next trial, or take a queued one; ``None`` when the study has its ``n_trials``.
+
+    Runs under the budget lock, so that two workers never both take the last slot.
+    """
+    with study_storage.budget_lock(), warnings.catch_warnings():
+        warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+        # ask() warns that heartbeats are meant for Study.optimize; this loop records them itself (storage.heartbeat)
+        warnings.filterwarnings("ignore", message="Heartbeat of storage is supposed to be used", category=UserWarning)
+        fail_stale_trials(study)
+        trials = study.get_trials(deepcopy=False)
+        queued = any(t.state == TrialState.WAITING for t in trials)
+        if not queued and budget_used(trials) >= n_trials:
+            return None
+        # Reseed per trial: workers sharing the sampler seed would otherwise draw the same startup points.
+        study.sampler = spec.make_sampler(seed_offset=len(trials))
+        return study.ask()
+
+
+def tell(study: optuna.Study, trial: optuna.Trial, result: TrialResult) -> None:
+    if result.reason is not None:
+        trial.set_user_attr("fail_reason" if result.state == TrialState.FAIL else "prune_reason", result.reason)
+    if result.state == TrialState.COMPLETE:
+        study.tell(trial, result.value)
+        logger.info("trial %d finished: %s = %.3f", trial.number, study.user_attrs.get("metric", "value"), result.value)
+    else:
+        study.tell(trial, state=result.state)
+        logger.info("trial %d %s: %s", trial.number, result.state.name, result.reason)
+
+
+def requeue(study: optuna.Study, trial_number: int) -> None:
+    """Queue a copy of a failed trial with the same parameters (Optuna's retry, which links the two)."""
+    frozen = next(t for t in study.get_trials(deepcopy=True) if t.number == trial_number)
+    RetryFailedTrialCallback(max_retry=None)(study, frozen)
+
+
+def run_worker(
+    study: optuna.Study,
+    spec: SweepSpec,
+    study_storage: StudyStorage,
+    objective: TrialObjective,
+    n_trials: int,
+    max_consecutive_failures: int = 5,
+    on_finished: Callable[[optuna.Study], None] | None = None,
+) -> WorkerSummary:
+    """Run trials until the study holds ``n_trials`` and none is running; see the module docstring.
+
+    :param max_consecutive_failures: stop this worker after so many trials in a row crashed (not diverged):
+        that is a bug or a broken setup, not a bad hyper-parameter
+    :param on_finished: called with the study once no trial is left anywhere (writes the results)
+    """
+    ran: list[int] = []
+    crashes: list[str] = []
+    while True:
+        trial = claim_trial(study, spec, study_storage, n_trials)
+        if trial is None:
+            if not _wait_for_others(study, study_storage):
+                return WorkerSummary(ran, study_finished=False)
+            if any(t.state == TrialState.WAITING for t in study.get_trials(deepcopy=False)):
+                continue  # a dead worker's trial was queued again: run it
+            if on_finished is not None:
+                on_finished(study)
+            return WorkerSummary(ran, study_finished=True)
+
+        logger.info("trial %d started in %s", trial.number, objective.run_dir(trial.number))
+        try:
+            with heartbeat(study_storage, trial._trial_id):
+                result = objective(trial)
+        except KeyboardInterrupt:  # Ctrl-C outside training (while composing the config, say)
+            result = TrialResult(TrialState.FAIL, reason="interrupted by SIGINT", interrupted=True)
+        tell(study, trial, result)
+        ran.append(trial.number)
+        if result.interrupted:
+            requeue(study, trial.number)
+            raise SweepInterrupted(trial.number)
+        if result.state == TrialState.FAIL and not (result.reason or "").startswith("diverged"):
+            crashes.append(f"trial {trial.number}: {result.reason} (see {objective.run_dir(trial.number)}/sweep_error.txt)")
+            if len(crashes) >= max_consecutive_failures:
+                raise SweepError(
+                    f"{len(crashes)} trials in a row crashed, so this worker stopped; the last ones:\n  "
+                    + "\n  ".join(crashes[-3:])
+                )
+        else:
+            crashes.clear()
+
+
+def _wait_for_others(study: optuna.Study, study_storage: StudyStorage) -> bool:
+    """Wait until no trial is running in another worker; ``False`` if that cannot be known (no heartbeat)."""
+    reported = False
+    while True:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+            fail_stale_trials(study)
+        running = [t.number for t in study.get_trials(deepcopy=False, states=(TrialState.RUNNING,))]
+        if not running:
+            return True
+        if study_storage.heartbeat_interval is None:
+            logger.info(
+                "no trial left to start; trials %s are still running elsewhere (this storage has no heartbeat, so a "
+                "killed worker's trial stays RUNNING): the last worker to finish writes the results",
+                running,
+            )
+            return False
+        if not reported:
+            logger.info("no trial left to start; waiting for trials %s running in other workers", running)
+            reported = True
+        time.sleep(study_storage.heartbeat_interval)
+
+
+def study_dir_for(output_dir: Path, study_name: str) -> Path:
+    return output_dir / study_name
