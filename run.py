@@ -5,10 +5,16 @@ Several seeds in parallel: ``python run.py -m seed=0,1,2,3,4``; continue a stopp
 See docs/experiments.md.
 """
 
+import sys
+from pathlib import Path
+
 import hydra
 from omegaconf import DictConfig
 
+from sb3_td3x.experiment.cli import check_command_line
 from sb3_td3x.experiment.cli import main as run_main
+
+CONF_DIR = Path(__file__).resolve().parent / "conf"
 
 
 @hydra.main(config_path="conf", config_name="config", version_base="1.3")
@@ -17,4 +23,5 @@ def main(cfg: DictConfig) -> float:
 
 
 if __name__ == "__main__":
+    check_command_line(sys.argv[1:], CONF_DIR)
     main()

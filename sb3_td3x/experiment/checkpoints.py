@@ -132,9 +132,9 @@ def load_checkpoint(path: Path, cls: type[TD3X], env: VecEnv, device: str) -> tu
     if isinstance(env, VecNormalize):
         env = VecNormalize.load(str(path / VECNORMALIZE_FILE), env.venv)
         env.returns = state["vecnormalize_returns"]
-    # No env at load time: ``load`` would re-seed it, and it must keep its restored state.
-    model = cls.load(path / MODEL_FILE, env=None, device=device)
-    model.set_env(env, force_reset=not resumes_episode)
+    # ``load`` seeds the env again, which only sets the seeds of its next explicit reset(); with force_reset=False
+    # there is none, so the restored episodes go on.
+    model = cls.load(path / MODEL_FILE, env=env, device=device, force_reset=not resumes_episode)
     model.load_replay_buffer(path / REPLAY_BUFFER_FILE)
     _set_rng_state(model, state["rng"])
     return model, state["experiment"]

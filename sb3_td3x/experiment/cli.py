@@ -3,6 +3,8 @@ the config of a resumed run, and turn user errors into a one-paragraph message a
 
 from __future__ import annotations
 
+import difflib
+import re
 import sys
 from pathlib import Path
 
@@ -11,6 +13,7 @@ from hydra.core.override_parser.overrides_parser import OverridesParser
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
+from sb3_td3x.experiment.checkpoints import resume_checkpoint
 from sb3_td3x.experiment.errors import ConfigError, TrainingDiverged, TrainingInterrupted
 from sb3_td3x.experiment.runner import CONFIG_FILE, run_experiment
 from sb3_td3x.experiment.schemas import ExperimentConfig
@@ -20,6 +23,53 @@ CONFIG_GROUPS = ("algo", "env", "eval", "logger", "video", "debug")
 
 EXIT_CONFIG_ERROR = 2
 EXIT_DIVERGED = 3
+
+
+def check_command_line(args: list[str], conf_dir: Path) -> None:
+    """Exit with a one-paragraph message when a group choice (``env=antt``) or ``resume=`` on the command line is wrong.
+
+    Runs before ``@hydra.main``: Hydra would report an unknown group choice as a page listing its search path, and
+    would create the folder of a ``resume=`` that does not exist before the task could refuse it.
+    """
+    try:
+        for arg in args:
+            if re.match(r"^[+~]?[A-Za-z_][\w.]*=", arg) is None:
+                continue  # a flag such as -m, or something Hydra will explain itself
+            try:
+                override = OverridesParser.create().parse_override(arg)
+            except Exception:  # Hydra's parser reports its own syntax errors well
+                continue
+            key = override.key_or_group
+            values = list(override.sweep_string_iterator()) if override.is_sweep_override() else [override.value()]
+            if key in CONFIG_GROUPS:
+                for value in values:
+                    _check_group_choice(conf_dir, key, value)
+            elif key == "resume":
+                for value in values:
+                    if value is not None:
+                        _check_resume_dir(Path(str(value)))
+    except ConfigError as error:
+        _exit(f"Error: {error}", EXIT_CONFIG_ERROR)
+
+
+def _check_group_choice(conf_dir: Path, group: str, choice: object) -> None:
+    options = sorted(path.stem for path in (conf_dir / group).glob("*.yaml"))
+    if choice is None or str(choice) in options:
+        return
+    close = difflib.get_close_matches(str(choice), options, n=1)
+    hint = f" Did you mean {group}={close[0]}?" if close else ""
+    raise ConfigError(
+        f"{group}={choice}: there is no config '{choice}' in {conf_dir / group}.{hint} The choices are: {', '.join(options)}."
+    )
+
+
+def _check_resume_dir(run_dir: Path) -> None:
+    if run_dir.is_dir() and not (run_dir / CONFIG_FILE).is_file():
+        raise ConfigError(
+            f"resume={run_dir}: {run_dir / CONFIG_FILE} does not exist. Pass the folder of an earlier run "
+            "(runs/<env>/<algo>/seed<N>/<date>), which holds config.yaml and checkpoints/."
+        )
+    resume_checkpoint(run_dir)
 
 
 def main(cfg: DictConfig) -> float:
@@ -45,12 +95,8 @@ def config_for_resume(cfg: DictConfig, overrides: list[str]) -> DictConfig:
     changing a config group (``env=...``) is refused, since the checkpoint belongs to the saved choices.
     """
     run_dir = Path(cfg.resume)
+    _check_resume_dir(run_dir)
     saved_file = run_dir / CONFIG_FILE
-    if not saved_file.is_file():
-        raise ConfigError(
-            f"resume={run_dir}: {saved_file} does not exist. Pass the folder of an earlier run "
-            "(runs/<env>/<algo>/seed<N>/<date>), which holds config.yaml and checkpoints/."
-        )
     resumed = OmegaConf.merge(OmegaConf.structured(ExperimentConfig), OmegaConf.load(saved_file))
     for override in OverridesParser.create().parse_overrides(overrides):
         key = override.key_or_group

@@ -42,12 +42,13 @@ class WandbOutputFormat(KVWriter):
 
 
 def wandb_api_key_configured() -> bool:
-    """True when wandb would find an API key: ``WANDB_API_KEY`` or an ``api.wandb.ai`` entry in ~/.netrc."""
+    """True when wandb would find an API key: ``WANDB_API_KEY``, or an ``api.wandb.ai`` entry in ``$NETRC`` or ~/.netrc."""
     if os.environ.get("WANDB_API_KEY"):
         return True
+    path = Path(os.environ.get("NETRC") or Path.home() / ".netrc")
     try:
-        return netrc.netrc().authenticators("api.wandb.ai") is not None
-    except (FileNotFoundError, netrc.NetrcParseError):
+        return netrc.netrc(str(path)).authenticators("api.wandb.ai") is not None
+    except (OSError, netrc.NetrcParseError):
         return False
 
 

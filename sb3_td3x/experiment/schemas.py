@@ -11,15 +11,21 @@ from __future__ import annotations
 
 import difflib
 import re
+from pathlib import Path
 from dataclasses import dataclass, field
 from typing import Any
 
 import gymnasium as gym
 import torch
+from hydra import compose, initialize_config_dir
 from hydra.core.config_store import ConfigStore
 from omegaconf import II, MISSING, DictConfig, OmegaConf
 
 from sb3_td3x.experiment.errors import ConfigError
+
+
+# conf/ of a source checkout (run.py's config_path).
+CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
 
 
 @dataclass
@@ -44,6 +50,7 @@ class AlgoConfig:
     train_freq: int = 1
     train_freq_unit: str = "step"  # "step" or "episode"
     gradient_steps: int = 1  # -1: as many gradient steps as environment steps collected (SB3's convention)
+    n_steps: int = 1  # n-step returns (SB3 >= 2.7); 1 is the paper's one-step TD target
     policy_delay: int = 2
     target_policy_noise: float = 0.2
     target_noise_clip: float = 0.5
@@ -53,6 +60,7 @@ class AlgoConfig:
     net_arch: list[int] = field(default_factory=lambda: [400, 300])
     n_critics: int = 2
     optimize_memory_usage: bool = False
+    stats_window_size: int = 100  # episodes averaged in rollout/ep_rew_mean
 
 
 @dataclass
@@ -156,6 +164,15 @@ if not OmegaConf.has_resolver("td3x.if_resume"):
     OmegaConf.register_new_resolver("td3x.if_resume", _if_resume)
 
 
+def compose_config(overrides: list[str] | None = None, conf_dir: Path = CONF_DIR) -> DictConfig:
+    """The config ``python run.py <overrides>`` would run, composed without starting a Hydra app.
+
+    ``run_dir`` keeps its default interpolation; set it before :func:`~sb3_td3x.experiment.runner.run_experiment`.
+    """
+    with initialize_config_dir(config_dir=str(conf_dir), version_base="1.3"):
+        return compose(config_name="config", overrides=list(overrides or []))
+
+
 def check_config(cfg: DictConfig) -> None:
     """Check ranges and names that the types cannot; raise one :class:`ConfigError` listing every problem."""
     problems: list[str] = []
@@ -184,6 +201,7 @@ def check_config(cfg: DictConfig) -> None:
     need(algo.train_freq >= 1, f"algo.train_freq={algo.train_freq} must be >= 1")
     need(algo.train_freq_unit in ("step", "episode"), f"algo.train_freq_unit={algo.train_freq_unit!r} must be 'step' or 'episode'")
     need(algo.gradient_steps >= 1 or algo.gradient_steps == -1, f"algo.gradient_steps={algo.gradient_steps} must be >= 1 or -1")
+    need(algo.n_steps >= 1, f"algo.n_steps={algo.n_steps} must be >= 1")
     need(algo.policy_delay >= 1, f"algo.policy_delay={algo.policy_delay} must be >= 1")
     need(algo.target_policy_noise >= 0, f"algo.target_policy_noise={algo.target_policy_noise} must be >= 0")
     need(algo.target_noise_clip >= 0, f"algo.target_noise_clip={algo.target_noise_clip} must be >= 0")

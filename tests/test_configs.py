@@ -1,0 +1,175 @@
+"""Every YAML in conf/ composes against its schema, passes the range checks and builds its object."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from hydra.errors import ConfigCompositionException
+from omegaconf import OmegaConf
+
+from sb3_td3x import DDPG, PRESETS, TD3X
+from sb3_td3x.experiment.algos import algorithm_kwargs, build_algorithm
+from sb3_td3x.experiment.callbacks import PeriodicEvaluation
+from sb3_td3x.experiment.envs import make_eval_env, make_train_env
+from sb3_td3x.experiment.errors import ConfigError
+from sb3_td3x.experiment.loggers import build_logger, wandb_mode
+from sb3_td3x.experiment.schemas import CONF_DIR, REDACTED, check_config, compose_config, public_config
+
+
+def options(group: str) -> list[str]:
+    return sorted(path.stem for path in (CONF_DIR / group).glob("*.yaml"))
+
+
+def test_the_groups_hold_what_the_issue_asks_for():
+    assert set(options("algo")) >= {"td3", "ddpg", "td3_no_smoothing", "td3_no_cdq", "td3_no_delay"}
+    assert set(options("env")) >= {
+        "ant", "halfcheetah", "hopper", "walker2d", "humanoid", "inverted_pendulum", "inverted_double_pendulum", "reacher",
+        "pendulum",
+    }  # fmt: skip
+    assert options("logger") and options("eval") and options("video") and options("debug")
+
+
+def test_the_default_config_is_the_quick_pendulum_run_with_optional_groups_off():
+    cfg = compose_config()
+    check_config(cfg)
+    assert (cfg.env.id, cfg.algo.name, cfg.logger.name) == ("Pendulum-v1", "td3", "tensorboard")
+    assert cfg.video is None and cfg.resume is None and cfg.logger.wandb is None
+    assert cfg.total_timesteps <= 20_000
+
+
+@pytest.mark.parametrize("name", options("algo"))
+def test_every_algo_config_builds_its_algorithm(name):
+    cfg = compose_config([f"algo={name}", "algo.buffer_size=1000", "device=cpu"])
+    check_config(cfg)
+    env = make_train_env(cfg.env, n_envs=1, seed=0)
+    model = build_algorithm(cfg, env)
+    assert isinstance(model, DDPG if name == "ddpg" else TD3X)
+    assert model.policy_delay == cfg.algo.policy_delay and model.tau == cfg.algo.tau and model.gamma == cfg.algo.gamma
+    assert model.target_policy_smoothing == cfg.algo.target_policy_smoothing
+    assert model.clipped_double_q == cfg.algo.clipped_double_q
+    assert len(model.critic.q_networks) == cfg.algo.n_critics
+    assert model.learning_starts == cfg.env.learning_starts
+    np.testing.assert_allclose(model.action_noise._sigma, cfg.algo.exploration_noise)
+    widths = [layer.out_features for layer in model.actor.mu if hasattr(layer, "out_features")]
+    assert widths[:-1] == list(cfg.algo.net_arch)
+    model.learn(10)  # one short rollout: the object works, not only builds
+    env.close()
+
+
+@pytest.mark.parametrize("name", [name for name in options("algo") if name in PRESETS])
+def test_algo_configs_agree_with_the_presets_of_the_package(name):
+    """conf/algo/<name>.yaml spells out sb3_td3x.PRESETS[name]; this catches the two drifting apart."""
+    kwargs = algorithm_kwargs(compose_config([f"algo={name}"]).algo, n_actions=1)
+    for key, value in PRESETS[name].items():
+        if key == "policy_kwargs":
+            assert value.items() <= kwargs["policy_kwargs"].items(), name
+        else:
+            assert kwargs[key] == value, (name, key)
+
+
+@pytest.mark.parametrize("name", options("env"))
+def test_every_env_config_makes_its_envs_with_the_paper_settings(name):
+    cfg = compose_config([f"env={name}"])
+    check_config(cfg)
+    if name != "pendulum":
+        assert cfg.env.id.endswith("-v5") and cfg.env.id == gym.spec(cfg.env.id).id
+        assert cfg.total_timesteps == 1_000_000 and cfg.eval.freq == 5000 and cfg.eval.n_episodes == 10
+        assert cfg.algo.learning_starts == (10_000 if name in ("ant", "halfcheetah") else 1_000)
+    assert cfg.algo.exploration_noise == 0.1
+    train_env, eval_env = make_train_env(cfg.env, n_envs=2, seed=0), make_eval_env(cfg.env)
+    for env in (train_env, eval_env):
+        obs = env.reset()
+        assert obs.shape == (env.num_envs, *env.observation_space.shape)
+        env.step(np.stack([env.action_space.sample() for _ in range(env.num_envs)]))
+        env.close()
+
+
+@pytest.mark.parametrize("name", options("logger"))
+def test_every_logger_config_builds_its_logger(name, tmp_path):
+    cfg = compose_config([f"logger={name}"])
+    check_config(cfg)
+    logger = build_logger(cfg.logger, tmp_path, wandb_run=None)  # the W&B run itself: tests/test_run_e2e.py
+    logger.record("eval/mean_reward", 1.0)
+    logger.dump(1)
+    logger.close()
+    assert any((tmp_path / "tb").glob("events.out.tfevents.*")) == cfg.logger.tensorboard
+    assert (cfg.logger.wandb is not None) == (name == "wandb")
+
+
+def test_every_eval_video_and_debug_config_composes_and_checks(tmp_path):
+    for group in ("eval", "video", "debug"):
+        for name in options(group):
+            cfg = compose_config([f"{group}={name}"])
+            check_config(cfg)
+    cfg = compose_config(["eval=default"])
+    env = make_eval_env(cfg.env)
+    evaluation = PeriodicEvaluation(env, tmp_path, cfg.eval.freq, cfg.eval.n_episodes, eval_seed=cfg.seed + cfg.eval.seed_offset)
+    assert evaluation.freq == 1000 and evaluation.n_episodes == 10
+    env.close()
+
+
+def test_overrides_reach_every_field_the_sweeps_search():
+    paths = {
+        "algo.learning_rate": 3e-4, "algo.critic_learning_rate": 1e-4, "algo.batch_size": 256, "algo.tau": 0.01,
+        "algo.gamma": 0.98, "algo.exploration_noise": 0.2, "algo.policy_delay": 3, "algo.target_policy_noise": 0.1,
+        "algo.target_noise_clip": 0.3, "algo.net_arch": [64, 64], "algo.train_freq": 2, "algo.gradient_steps": 2,
+        "seed": 7, "n_envs": 2, "device": "cpu", "total_timesteps": 1234,
+    }  # fmt: skip
+    overrides = [f"{key}={value}".replace(" ", "") for key, value in paths.items()]
+    cfg = compose_config(overrides)
+    check_config(cfg)
+    for key, value in paths.items():
+        assert OmegaConf.select(cfg, key) == value, key
+
+
+@pytest.mark.parametrize("override", ["algo.taau=0.1", "algo.batch_size=abc", "algo.net_arch=wide", "seed=1.5", "logger.tensorboard=maybe"])
+def test_a_typo_or_a_wrong_type_fails_while_composing(override):
+    with pytest.raises(ConfigCompositionException):
+        compose_config([override])
+
+
+@pytest.mark.parametrize(
+    "override, field",
+    [
+        ("algo.tau=2", "algo.tau"),
+        ("algo.tau=0", "algo.tau"),
+        ("total_timesteps=-1", "total_timesteps"),
+        ("algo.gamma=1.5", "algo.gamma"),
+        ("algo.learning_rate=0", "algo.learning_rate"),
+        ("algo.batch_size=0", "algo.batch_size"),
+        ("algo.train_freq_unit=epoch", "algo.train_freq_unit"),
+        ("algo.net_arch=[]", "algo.net_arch"),
+        ("n_envs=0", "n_envs"),
+        ("eval.freq=0", "eval.freq"),
+        ("env.id=Antt-v5", "env.id"),
+        ("device=tpu", "device"),
+    ],
+)
+def test_out_of_range_values_fail_the_check_naming_the_field(override, field):
+    cfg = compose_config([override])
+    with pytest.raises(ConfigError, match=field.replace(".", r"\.")):
+        check_config(cfg)
+
+
+def test_the_saved_config_has_no_credentials():
+    cfg = compose_config(["+env.kwargs.api_key=hunter2", "logger=wandb"])
+    saved = public_config(cfg)
+    assert saved["env"]["kwargs"]["api_key"] == REDACTED
+    assert "hunter2" not in OmegaConf.to_yaml(OmegaConf.create(saved))
+
+
+def test_wandb_logs_offline_without_an_api_key(monkeypatch, tmp_path):
+    monkeypatch.delenv("WANDB_API_KEY", raising=False)
+    monkeypatch.delenv("WANDB_MODE", raising=False)
+    monkeypatch.setenv("HOME", str(tmp_path))  # no ~/.netrc
+    monkeypatch.setenv("NETRC", str(tmp_path / ".netrc"))
+    assert wandb_mode("auto") == "offline"
+    (tmp_path / ".netrc").write_text("machine api.wandb.ai\n  login user\n  password 0123456789\n")
+    (tmp_path / ".netrc").chmod(0o600)
+    assert wandb_mode("auto") == "online"
+    monkeypatch.setenv("WANDB_MODE", "disabled")
+    assert wandb_mode("auto") == "disabled"
+    assert Path(CONF_DIR / "logger" / "wandb.yaml").read_text().count("mode: auto") == 1
