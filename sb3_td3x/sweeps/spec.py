@@ -245,6 +245,12 @@ def load_sweep(path: str | Path) -> SweepSpec:
         raise SweepSpecError(f"{source} is not valid YAML: {err}") from None
     if not isinstance(loaded, DictConfig):
         raise SweepSpecError(f"{source} must be a mapping of fields (study_name, metric, ...), not a list")
+    # Overrides stay verbatim: an interpolation in them (algo.gradient_steps=${algo.train_freq}) belongs to the
+    # training config, not to this file.
+    overrides = OmegaConf.to_container(loaded, resolve=False).get("overrides", [])
+    if not isinstance(overrides, list) or not all(isinstance(o, str) for o in overrides):
+        raise SweepSpecError(f"{source}: overrides must be a list of Hydra overrides such as [env=hopper, total_timesteps=300000]")
+    loaded.overrides = []
     try:
         config = OmegaConf.merge(OmegaConf.structured(SweepFileSchema), loaded)
         missing = sorted(OmegaConf.missing_keys(config))
@@ -276,7 +282,7 @@ def load_sweep(path: str | Path) -> SweepSpec:
         n_trials=data["n_trials"],
         seed=data["seed"],
         storage=data["storage"],
-        overrides=list(data["overrides"]),
+        overrides=list(overrides),
         sampler=data["sampler"],
         pruner=data["pruner"],
         params=params,

@@ -18,6 +18,7 @@ import fcntl
 import hashlib
 import logging
 import threading
+import time
 import warnings
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -25,7 +26,7 @@ from pathlib import Path
 from typing import ContextManager
 
 import optuna
-from optuna.storages import BaseStorage, JournalStorage, RDBStorage, RetryFailedTrialCallback
+from optuna.storages import BaseStorage, JournalStorage, RDBStorage, RetryHeartbeatStaleTrialCallback
 from optuna.storages.journal import JournalFileBackend
 
 from sb3_td3x.sweeps.errors import StorageError
@@ -114,6 +115,10 @@ def _open_rdb(url: str, study_name: str, heartbeat_interval: int, grace_period: 
     except sqlalchemy.exc.ArgumentError:
         raise StorageError(f"storage {mask_password(url)!r} is not a valid SQLAlchemy URL") from None
     backend = parsed.get_backend_name()
+    if parsed.drivername == "postgresql" and not _importable("psycopg") and _importable("psycopg2"):
+        # SQLAlchemy 2.1 reads postgresql:// as psycopg 3; this package installs psycopg2 (psycopg2-binary)
+        parsed = parsed.set(drivername="postgresql+psycopg2")
+        url = parsed.render_as_string(hide_password=False)
     engine_kwargs: dict = {"pool_pre_ping": True}  # a long trial outlives idle connections the server drops
     if backend == "sqlite":
         if parsed.database and parsed.database != ":memory:":
@@ -127,24 +132,16 @@ def _open_rdb(url: str, study_name: str, heartbeat_interval: int, grace_period: 
         engine_kwargs["connect_args"] = {"connect_timeout": 10}
     if grace_period is not None and grace_period <= heartbeat_interval:
         raise StorageError(f"grace period ({grace_period}s) must be longer than the heartbeat interval ({heartbeat_interval}s)")
-    callback = RetryFailedTrialCallback(max_retry=retry_stale) if retry_stale > 0 else None
+    callback = RetryHeartbeatStaleTrialCallback(max_retry=retry_stale) if retry_stale > 0 else None
     try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
-            storage = RDBStorage(
-                url,
-                engine_kwargs=engine_kwargs,
-                heartbeat_interval=heartbeat_interval,
-                grace_period=grace_period,
-                heartbeat_stale_trial_callback=callback,
-            )
+        storage = _create_rdb(url, engine_kwargs, heartbeat_interval, grace_period, callback)
     except sqlalchemy.exc.NoSuchModuleError:
         hint = " (write postgresql://, not postgres://)" if parsed.drivername == "postgres" else ""
         raise StorageError(f"storage {mask_password(url)!r}: SQLAlchemy has no dialect {parsed.drivername!r}{hint}") from None
-    except ModuleNotFoundError as err:
+    except ImportError:  # Optuna turns a missing driver into "Failed to import DB access module"
         raise StorageError(
-            f"storage {mask_password(url)!r} needs the database driver {err.name!r}: pip install "
-            f"{'psycopg2-binary' if backend == 'postgresql' else err.name}"
+            f"storage {mask_password(url)!r} needs a database driver that is not installed (PostgreSQL: pip install "
+            "psycopg2-binary and write postgresql+psycopg2://; MySQL: pip install pymysql and write mysql+pymysql://)"
         ) from None
     except sqlalchemy.exc.SQLAlchemyError as err:
         reason = str(getattr(err, "orig", None) or err).strip().splitlines()[0]
@@ -153,6 +150,34 @@ def _open_rdb(url: str, study_name: str, heartbeat_interval: int, grace_period: 
             "reachable, and that the URL's user, password and database name are right."
         ) from None
     return StudyStorage(url, storage, _rdb_lock(storage, backend, study_name, url), heartbeat_interval)
+
+
+def _importable(module: str) -> bool:
+    import importlib.util
+
+    return importlib.util.find_spec(module) is not None
+
+
+def _create_rdb(url: str, engine_kwargs: dict, heartbeat_interval: int, grace_period: int | None, callback) -> RDBStorage:
+    """Optuna's RDBStorage; creating the tables is retried, since workers starting together on a fresh database race."""
+    import sqlalchemy.exc
+
+    for attempt in range(3):
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+                return RDBStorage(
+                    url,
+                    engine_kwargs=engine_kwargs,
+                    heartbeat_interval=heartbeat_interval,
+                    grace_period=grace_period,
+                    heartbeat_stale_trial_callback=callback,
+                )
+        except (sqlalchemy.exc.IntegrityError, sqlalchemy.exc.ProgrammingError):
+            if attempt == 2:
+                raise
+            time.sleep(1.0 + attempt)
+    raise AssertionError("unreachable")
 
 
 def _open_journal(url: str, study_name: str) -> StudyStorage:

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import optuna
-from optuna.storages import RetryFailedTrialCallback, fail_stale_trials
+from optuna.storages import RetryHeartbeatStaleTrialCallback, fail_stale_trials
 from optuna.trial import FrozenTrial, TrialState
 
 from sb3_td3x.sweeps.errors import SweepError
@@ -89,7 +89,9 @@ def open_study(spec: SweepSpec, study_storage: StudyStorage, study_name: str, fi
 
 def budget_used(trials: list[FrozenTrial]) -> int:
     """Trials that count against ``n_trials``: all of them, except failed ones that were queued again."""
-    retried = {RetryFailedTrialCallback.retried_trial_number(t) for t in trials} - {None}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+        retried = {RetryHeartbeatStaleTrialCallback.retried_trial_number(t) for t in trials} - {None}
     return len(trials) - len(retried)
 
 
@@ -126,7 +128,9 @@ def tell(study: optuna.Study, trial: optuna.Trial, result: TrialResult) -> None:
 def requeue(study: optuna.Study, trial_number: int) -> None:
     """Queue a copy of a failed trial with the same parameters (Optuna's retry, which links the two)."""
     frozen = next(t for t in study.get_trials(deepcopy=True) if t.number == trial_number)
-    RetryFailedTrialCallback(max_retry=None)(study, frozen)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+        RetryHeartbeatStaleTrialCallback(max_retry=None)(study, frozen)
 
 
 def run_worker(
