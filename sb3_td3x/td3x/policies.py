@@ -31,6 +31,15 @@ class TD3XPolicy(TD3Policy):
     critic: TD3XCritic
     critic_target: TD3XCritic
 
+    def __init__(self, *args: Any, **kwargs: Any):
+        optimizer_class = kwargs.get("optimizer_class", th.optim.Adam)
+        optimizer_kwargs = dict(kwargs.get("optimizer_kwargs") or {})
+        if optimizer_class in (th.optim.Adam, th.optim.AdamW) and not {"fused", "foreach"} & optimizer_kwargs.keys():
+            # One fused kernel for the whole update instead of a loop over tensors (CPU and CUDA).
+            optimizer_kwargs["fused"] = True
+        kwargs["optimizer_kwargs"] = optimizer_kwargs
+        super().__init__(*args, **kwargs)
+
     def make_critic(self, features_extractor: BaseFeaturesExtractor | None = None) -> TD3XCritic:
         critic_kwargs = self._update_features_extractor(self.critic_kwargs, features_extractor)
         return TD3XCritic(**critic_kwargs).to(self.device)

@@ -17,6 +17,7 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, ReplayBufferSamples, Schedule, TensorDict
 from stable_baselines3.common.utils import FloatSchedule, get_parameters_by_name, update_learning_rate
 
+from sb3_td3x.common.buffers import TensorReplayBuffer
 from sb3_td3x.td3x.policies import CnnPolicy, MlpPolicy, MultiInputPolicy, TD3XPolicy
 
 SelfTD3X = TypeVar("SelfTD3X", bound="TD3X")
@@ -272,6 +273,9 @@ class TD3X(OffPolicyAlgorithm):
                 fail(name, "a finite float >= 0 (use target_policy_smoothing=False to switch smoothing off)")
 
     def _setup_model(self) -> None:
+        if self.replay_buffer_class is None and isinstance(self.observation_space, spaces.Box) and self.n_steps == 1:
+            # Step 1: the replay buffer, kept as tensors on the training device (SB3's other buffers otherwise).
+            self.replay_buffer_class = TensorReplayBuffer
         super()._setup_model()
         self.critic_lr_schedule = (
             self.lr_schedule if self.critic_learning_rate is None else FloatSchedule(self.critic_learning_rate)
@@ -444,6 +448,26 @@ class TD3X(OffPolicyAlgorithm):
             raise RuntimeError(f"Polyak update: {len(params)} parameters but {len(target_params)} target parameters")
         if params:
             th._foreach_lerp_(target_params, params, tau)
+
+    # ------------------------------------------------------------------------------------------------------------
+    # Collection: the exploration policy
+    # ------------------------------------------------------------------------------------------------------------
+    def _sample_action(
+        self, learning_starts: int, action_noise: ActionNoise | None = None, n_envs: int = 1
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The exploration action a = clip(pi(s) + noise, -1, 1) in the normalised action space, and its env scaling.
+
+        The same actions as SB3's ``_sample_action`` (uniform random before ``learning_starts``), computed straight
+        from the actor's normalised output instead of ``predict()`` followed by ``scale_action()``.
+        """
+        if self.num_timesteps < learning_starts or not isinstance(self._last_obs, np.ndarray):
+            return super()._sample_action(learning_starts, action_noise, n_envs)
+        with th.no_grad():
+            obs = th.as_tensor(self._last_obs, device=self.device).reshape(n_envs, *self.observation_space.shape)
+            scaled_action = self.actor(obs).cpu().numpy()  # (n_envs, action_dim), in [-1, 1]
+        if action_noise is not None:
+            scaled_action = np.clip(scaled_action + action_noise(), -1, 1)
+        return self.policy.unscale_action(scaled_action), scaled_action
 
     # ------------------------------------------------------------------------------------------------------------
     # Logging, learning-rate schedules, save/load

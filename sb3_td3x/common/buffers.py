@@ -1,0 +1,171 @@
+"""A replay buffer kept as torch tensors on the training device, sampled by index."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.buffers import ReplayBuffer
+from stable_baselines3.common.type_aliases import ReplayBufferSamples
+from stable_baselines3.common.utils import get_device
+from stable_baselines3.common.vec_env import VecNormalize
+
+
+def _storage_dtype(np_dtype: np.dtype) -> th.dtype:
+    """float64 is stored as float32 (what the networks read); other dtypes (uint8 images...) are kept."""
+    if np.issubdtype(np_dtype, np.floating):
+        return th.float32
+    return th.from_numpy(np.zeros(0, dtype=np_dtype)).dtype
+
+
+class TensorReplayBuffer(ReplayBuffer):
+    """
+    SB3's ``ReplayBuffer`` (same constructor, same ``add``/``sample`` contract, same samples) stored as torch tensors.
+
+    Transitions are written once into preallocated tensors on ``device`` and a batch is gathered there by index: no
+    numpy-to-torch copy per batch and, on a GPU, no host-to-device transfer per batch. Floating-point observations
+    are stored as float32 (the dtype the networks read), which halves the memory of float64 spaces such as MuJoCo's.
+    Box observation spaces only; SB3's Dict, n-step and HER buffers are used for the rest.
+
+    With a ``VecNormalize`` env, samples are normalised with the env's current statistics, as SB3 does.
+    """
+
+    def __init__(
+        self,
+        buffer_size: int,
+        observation_space: spaces.Space,
+        action_space: spaces.Space,
+        device: th.device | str = "auto",
+        n_envs: int = 1,
+        optimize_memory_usage: bool = False,
+        handle_timeout_termination: bool = True,
+    ):
+        if not isinstance(observation_space, spaces.Box):
+            raise ValueError(
+                f"TensorReplayBuffer stores Box observations, got {observation_space!r}; "
+                "use SB3's DictReplayBuffer for Dict observations (replay_buffer_class=None picks it)."
+            )
+        if optimize_memory_usage and handle_timeout_termination:
+            raise ValueError(
+                "ReplayBuffer does not support optimize_memory_usage = True and handle_timeout_termination = True "
+                "simultaneously: pass replay_buffer_kwargs=dict(handle_timeout_termination=False)."
+            )
+        # BaseBuffer's set-up (shapes, device, pos/full), without ReplayBuffer's numpy arrays.
+        super(ReplayBuffer, self).__init__(buffer_size, observation_space, action_space, device, n_envs=n_envs)
+        self.buffer_size = max(buffer_size // n_envs, 1)
+        self.optimize_memory_usage = optimize_memory_usage
+        self.handle_timeout_termination = handle_timeout_termination
+        self._allocate(get_device(device))
+
+    def _allocate(self, device: th.device) -> None:
+        size, n = self.buffer_size, self.n_envs
+        obs_dtype = _storage_dtype(self.observation_space.dtype)
+
+        def zeros(*shape: int, dtype: th.dtype = th.float32) -> th.Tensor:
+            return th.zeros(shape, dtype=dtype, device=device)
+
+        self.observations = zeros(size, n, *self.obs_shape, dtype=obs_dtype)
+        self.next_observations = None if self.optimize_memory_usage else zeros(size, n, *self.obs_shape, dtype=obs_dtype)
+        self.actions = zeros(size, n, self.action_dim)
+        self.rewards = zeros(size, n)
+        self.dones = zeros(size, n)
+        self.timeouts = zeros(size, n)
+        self._device = device
+
+    # The device can be changed after loading (SB3 does ``replay_buffer.device = model.device``): move the storage.
+    @property
+    def device(self) -> th.device:
+        return self._device
+
+    @device.setter
+    def device(self, device: th.device | str) -> None:
+        device = get_device(device)
+        if hasattr(self, "observations") and device != self._device:
+            for name in ("observations", "next_observations", "actions", "rewards", "dones", "timeouts"):
+                tensor = getattr(self, name)
+                if tensor is not None:
+                    setattr(self, name, tensor.to(device))
+        self._device = device
+
+    def nbytes(self) -> int:
+        """Bytes held by the storage tensors."""
+        tensors = (self.observations, self.next_observations, self.actions, self.rewards, self.dones, self.timeouts)
+        return sum(t.numel() * t.element_size() for t in tensors if t is not None)
+
+    @th.no_grad()
+    def add(
+        self,
+        obs: np.ndarray,
+        next_obs: np.ndarray,
+        action: np.ndarray,
+        reward: np.ndarray,
+        done: np.ndarray,
+        infos: list[dict[str, Any]],
+    ) -> None:
+        pos = self.pos
+        # copy_ converts dtype and device in place; no reference to the caller's arrays is kept.
+        self.observations[pos].copy_(th.as_tensor(np.asarray(obs)).reshape(self.observations.shape[1:]))
+        next_obs_t = th.as_tensor(np.asarray(next_obs)).reshape(self.observations.shape[1:])
+        if self.optimize_memory_usage:
+            self.observations[(pos + 1) % self.buffer_size].copy_(next_obs_t)
+        else:
+            self.next_observations[pos].copy_(next_obs_t)  # type: ignore[index]
+        self.actions[pos].copy_(th.as_tensor(np.asarray(action)).reshape(self.n_envs, self.action_dim))
+        self.rewards[pos].copy_(th.as_tensor(np.asarray(reward)).reshape(self.n_envs))
+        self.dones[pos].copy_(th.as_tensor(np.asarray(done)).reshape(self.n_envs))
+        if self.handle_timeout_termination:
+            timeouts = [info.get("TimeLimit.truncated", False) for info in infos]
+            self.timeouts[pos].copy_(th.as_tensor(timeouts, dtype=th.float32))
+
+        self.pos += 1
+        if self.pos == self.buffer_size:
+            self.full = True
+            self.pos = 0
+
+    def sample(self, batch_size: int, env: VecNormalize | None = None) -> ReplayBufferSamples:
+        """Uniform sample of ``batch_size`` transitions, drawn with torch's generator on the storage device."""
+        device = self._device
+        if self.optimize_memory_usage:
+            # Index ``pos`` holds the newest next-observation, not a valid transition: skip it (as SB3 does).
+            if self.full:
+                batch_inds = (th.randint(1, self.buffer_size, (batch_size,), device=device) + self.pos) % self.buffer_size
+            else:
+                batch_inds = th.randint(0, self.pos, (batch_size,), device=device)
+        else:
+            upper_bound = self.buffer_size if self.full else self.pos
+            batch_inds = th.randint(0, upper_bound, (batch_size,), device=device)
+        return self._get_samples(batch_inds, env=env)
+
+    def _get_samples(self, batch_inds: th.Tensor | np.ndarray, env: VecNormalize | None = None) -> ReplayBufferSamples:
+        batch_inds = th.as_tensor(batch_inds, device=self._device)
+        env_inds = th.randint(0, self.n_envs, batch_inds.shape, device=self._device) if self.n_envs > 1 else 0
+        if self.optimize_memory_usage:
+            next_obs = self.observations[(batch_inds + 1) % self.buffer_size, env_inds]
+        else:
+            next_obs = self.next_observations[batch_inds, env_inds]  # type: ignore[index]
+        obs = self.observations[batch_inds, env_inds]
+        # Only use dones that are not due to timeouts
+        dones = (self.dones[batch_inds, env_inds] * (1 - self.timeouts[batch_inds, env_inds])).unsqueeze(1)
+        rewards = self.rewards[batch_inds, env_inds].unsqueeze(1)
+        if env is not None:
+            obs, next_obs, rewards = self._normalize(obs, env), self._normalize(next_obs, env), self._normalize_rew(rewards, env)
+        return ReplayBufferSamples(obs, self.actions[batch_inds, env_inds], next_obs, dones, rewards)
+
+    def _normalize(self, obs: th.Tensor, env: VecNormalize) -> th.Tensor:
+        normalized = env.normalize_obs(obs.cpu().numpy())
+        return th.as_tensor(normalized, dtype=th.float32, device=self._device)
+
+    def _normalize_rew(self, rewards: th.Tensor, env: VecNormalize) -> th.Tensor:
+        normalized = env.normalize_reward(rewards.cpu().numpy()).astype(np.float32)
+        return th.as_tensor(normalized, device=self._device)
+
+    def __getstate__(self) -> dict[str, Any]:
+        # Saved on the CPU so that a buffer saved on a GPU machine loads anywhere.
+        state = self.__dict__.copy()
+        for name in ("observations", "next_observations", "actions", "rewards", "dones", "timeouts"):
+            if state.get(name) is not None:
+                state[name] = state[name].cpu()
+        state["_device"] = th.device("cpu")
+        return state
