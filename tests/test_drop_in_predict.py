@@ -18,7 +18,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv
 from sb3_td3x import DDPG, TD3X
 
 # A bare minimum of exploration before learning, small networks: these tests are about the interfaces.
-TINY = dict(policy_kwargs=dict(net_arch=[64, 64]), learning_starts=100, batch_size=64)
+TINY = dict(policy_kwargs=dict(net_arch=[64, 64]), learning_starts=100, batch_size=64, buffer_size=1_000)
 
 
 class SubClassedBox(spaces.Box):
