@@ -1,0 +1,112 @@
+"""A run stopped by SIGTERM resumes where it stopped and makes the same curve as a run never stopped."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+import zipfile
+from pathlib import Path
+
+import pytest
+import torch
+
+from sb3_td3x.experiment.checkpoints import META_FILE, find_checkpoint, save_checkpoint
+from sb3_td3x.experiment.cli import config_for_resume
+from sb3_td3x.experiment.errors import ConfigError
+from sb3_td3x.experiment.schemas import compose_config
+
+REPO = Path(__file__).resolve().parents[1]
+# 2000 steps of InvertedPendulum-v5 with small networks, evaluated every 500 steps; the only checkpoint before
+# the end is the one SIGTERM writes.
+RUN = ["debug=smoke", "env=inverted_pendulum", "checkpoint.freq=100000", "progress_bar=false"]
+
+
+def run_py(*args: str, **kwargs) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "run.py", *args], cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kwargs)
+
+
+def curve(run_dir: Path) -> list[tuple[int, float, float]]:
+    with open(run_dir / "evaluations.csv") as file:
+        return [(int(row["timesteps"]), float(row["mean_return"]), float(row["std_return"])) for row in csv.DictReader(file)]
+
+
+def policy_weights(run_dir: Path) -> dict[str, torch.Tensor]:
+    with zipfile.ZipFile(run_dir / "checkpoints" / "last" / "model.zip") as archive, archive.open("policy.pth") as file:
+        return torch.load(file, map_location="cpu")
+
+
+def test_sigterm_then_resume_finishes_the_same_run(tmp_path):
+    reference, stopped = tmp_path / "reference", tmp_path / "stopped"
+    reference_process = run_py(*RUN, f"run_dir={reference}")  # in parallel: 2 cores
+    process = run_py(*RUN, f"run_dir={stopped}")
+    deadline = time.time() + 300
+    while not (stopped / "evaluations.csv").is_file() or len(curve(stopped)) < 2:  # past step 1000
+        assert process.poll() is None and time.time() < deadline, "the run ended before it could be stopped"
+        time.sleep(0.05)
+    time.sleep(0.5)  # most likely within an episode
+    process.send_signal(signal.SIGTERM)
+    _, stderr = process.communicate(timeout=120)
+    assert process.returncode == 128 + signal.SIGTERM
+    assert "Traceback" not in stderr and f"python run.py resume={stopped}" in stderr
+    stopped_at = json.loads((stopped / "checkpoints" / "last" / META_FILE).read_text())["num_timesteps"]
+    assert 1000 <= stopped_at < 2000
+    assert reference_process.wait(timeout=300) == 0, reference_process.stderr.read()[-3000:]
+
+    process = run_py(f"resume={stopped}", "progress_bar=false")
+    stdout, stderr = process.communicate(timeout=300)
+    assert process.returncode == 0, stderr[-3000:]
+    assert f"Resuming {stopped} at step {stopped_at}" in stdout
+
+    assert json.loads((stopped / "checkpoints" / "last" / META_FILE).read_text())["num_timesteps"] == 2000
+    assert curve(stopped) == curve(reference)
+    assert [step for step, _, _ in curve(stopped)] == [500, 1000, 1500, 2000]
+    reference_weights, resumed_weights = policy_weights(reference), policy_weights(stopped)
+    for name, tensor in reference_weights.items():
+        torch.testing.assert_close(resumed_weights[name], tensor, rtol=0, atol=0, msg=name)
+    assert (stopped / ".hydra" / "config.yaml").is_file() and list((stopped / ".hydra").glob("resumed_*"))
+
+
+def test_resume_takes_the_saved_config_and_plain_overrides(tmp_path):
+    cfg = compose_config(["env=inverted_pendulum", "algo=ddpg", f"run_dir={tmp_path}"])
+    from omegaconf import OmegaConf
+
+    (tmp_path / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
+    (tmp_path / "checkpoints" / "last").mkdir(parents=True)
+    for name in (META_FILE, "replay_buffer.pkl"):
+        (tmp_path / "checkpoints" / "last" / name).write_text("{}")
+    default = compose_config([f"resume={tmp_path}", "total_timesteps=5000"])  # composed with the default env and algo
+    resumed = config_for_resume(default, [f"resume={tmp_path}", "total_timesteps=5000", "algo.tau=0.01"])
+    assert (resumed.env.id, resumed.algo.name, resumed.total_timesteps, resumed.algo.tau) == ("InvertedPendulum-v5", "ddpg", 5000, 0.01)
+    assert resumed.run_dir == str(tmp_path)
+    with pytest.raises(ConfigError, match="config group 'env'"):
+        config_for_resume(default, [f"resume={tmp_path}", "env=ant"])
+
+
+def test_a_checkpoint_cut_between_its_renames_is_still_found(tmp_path):
+    last = tmp_path / "last"
+    assert find_checkpoint(last) is None
+    (tmp_path / "last.prev").mkdir()
+    (tmp_path / "last.prev" / META_FILE).write_text("{}")
+    assert find_checkpoint(last) == tmp_path / "last.prev"  # the old one moved aside, the new one not yet in place
+    (tmp_path / "last.tmp").mkdir()  # a save that died while writing: never used
+    assert find_checkpoint(last) == tmp_path / "last.prev"
+
+
+def test_save_checkpoint_replaces_the_previous_one_whole(tmp_path):
+    from sb3_td3x import TD3X
+    from sb3_td3x.experiment.envs import make_train_env
+
+    cfg = compose_config(["env=pendulum"])
+    model = TD3X("MlpPolicy", make_train_env(cfg.env, 1, 0), buffer_size=500, learning_starts=10, policy_kwargs={"net_arch": [8]})
+    model.learn(20)
+    save_checkpoint(tmp_path / "last", model, {"n": 1})
+    model.learn(20, reset_num_timesteps=False)
+    save_checkpoint(tmp_path / "last", model, {"n": 2})
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["last"]
+    assert json.loads((tmp_path / "last" / META_FILE).read_text())["num_timesteps"] == 40
+    assert os.path.getsize(tmp_path / "last" / "replay_buffer.pkl") > 0
