@@ -1,0 +1,159 @@
+"""Aggregate finished runs into a table and learning-curve plots, with 95% bootstrap confidence intervals.
+
+    python -m sb3_td3x.experiment.aggregate runs/multirun/2026-01-01_12-00-00 [more folders] [--stat iqm] [--out DIR]
+
+Every run folder below the given paths (a folder with ``evaluations.csv`` and ``config.yaml``) is grouped by
+(env id, algo name); the seeds of a group are aligned on the evaluation steps they all have. The statistic over
+seeds is the mean or the interquartile mean (IQM, the mean of the middle 50%, as recommended by Agarwal et al.
+2021, "Deep RL at the Edge of the Statistical Precipice"); its 95% confidence interval is a percentile
+bootstrap over seeds. Writes ``aggregate.csv``, ``aggregate.md`` and ``aggregate_<env>.png`` to ``--out``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import pandas as pd  # noqa: E402
+from omegaconf import OmegaConf  # noqa: E402
+
+from sb3_td3x.experiment.callbacks import EVALUATIONS_CSV  # noqa: E402
+from sb3_td3x.experiment.runner import CONFIG_FILE  # noqa: E402
+
+
+def iqm(values: np.ndarray, axis: int = -1) -> np.ndarray:
+    """Interquartile mean along ``axis``: drop the lowest and highest 25% (``floor(n / 4)`` values each) and average."""
+    values = np.sort(values, axis=axis)
+    n = values.shape[axis]
+    cut = n // 4
+    return np.take(values, np.arange(cut, n - cut), axis=axis).mean(axis=axis)
+
+
+def mean(values: np.ndarray, axis: int = -1) -> np.ndarray:
+    return values.mean(axis=axis)
+
+
+STATISTICS: dict[str, Callable[..., np.ndarray]] = {"mean": mean, "iqm": iqm}
+
+
+def bootstrap_ci(
+    values: np.ndarray, statistic: Callable[..., np.ndarray], n_resamples: int = 2000, seed: int = 0
+) -> tuple[np.ndarray, np.ndarray]:
+    """95% percentile-bootstrap interval of ``statistic`` over the last axis (seeds) of ``values`` (steps, seeds)."""
+    rng = np.random.default_rng(seed)
+    n_seeds = values.shape[-1]
+    picks = rng.integers(0, n_seeds, size=(n_resamples, n_seeds))  # (n_resamples, n_seeds)
+    resampled = statistic(values[:, picks], axis=-1)  # (steps, n_resamples)
+    return np.percentile(resampled, 2.5, axis=-1), np.percentile(resampled, 97.5, axis=-1)
+
+
+def load_runs(paths: list[Path]) -> pd.DataFrame:
+    """One row per evaluation of every run below ``paths``: env_id, algo, seed, run_dir, timesteps, mean_return."""
+    frames = []
+    for path in paths:
+        for csv_path in sorted(path.rglob(EVALUATIONS_CSV)):
+            run_dir = csv_path.parent
+            if not (run_dir / CONFIG_FILE).is_file():
+                continue
+            config = OmegaConf.load(run_dir / CONFIG_FILE)
+            evaluations = pd.read_csv(csv_path)
+            frames.append(
+                evaluations[["timesteps", "mean_return"]].assign(
+                    env_id=config.env.id, algo=config.algo.name, seed=config.seed, run_dir=str(run_dir)
+                )
+            )
+    if not frames:
+        raise FileNotFoundError(f"No run folder (with {EVALUATIONS_CSV} and {CONFIG_FILE}) below {', '.join(map(str, paths))}")
+    return pd.concat(frames, ignore_index=True)
+
+
+def aggregate(runs: pd.DataFrame, stat: str = "mean") -> tuple[pd.DataFrame, dict[tuple[str, str], pd.DataFrame]]:
+    """The summary table (one row per env and algo) and, per group, the curve: statistic and CI per step."""
+    statistic = STATISTICS[stat]
+    rows, curves = [], {}
+    for (env_id, algo), group in runs.groupby(["env_id", "algo"], sort=True):
+        # (steps, seeds), only the steps every run of the group has reached
+        table = group.pivot_table(index="timesteps", columns="run_dir", values="mean_return").dropna()
+        values = table.to_numpy()
+        low, high = bootstrap_ci(values, statistic)
+        curve = pd.DataFrame({"timesteps": table.index, stat: statistic(values, axis=-1), "ci_low": low, "ci_high": high})
+        curves[(env_id, algo)] = curve
+        final = curve.iloc[-1]
+        rows.append(
+            {
+                "env_id": env_id,
+                "algo": algo,
+                "n_runs": values.shape[1],
+                "timesteps": int(final["timesteps"]),
+                f"final_{stat}": final[stat],
+                "ci_low": final["ci_low"],
+                "ci_high": final["ci_high"],
+                f"best_{stat}": curve[stat].max(),
+            }
+        )
+    return pd.DataFrame(rows), curves
+
+
+def plot_curves(curves: dict[tuple[str, str], pd.DataFrame], stat: str, out_dir: Path) -> list[Path]:
+    """One PNG per environment: the statistic of every algo against steps, with its 95% CI band."""
+    paths = []
+    for env_id in sorted({env_id for env_id, _ in curves}):
+        fig, ax = plt.subplots(figsize=(6, 4), dpi=100)
+        for (curve_env, algo), curve in sorted(curves.items()):
+            if curve_env != env_id:
+                continue
+            ax.plot(curve["timesteps"], curve[stat], label=algo)
+            ax.fill_between(curve["timesteps"], curve["ci_low"], curve["ci_high"], alpha=0.2, linewidth=0)
+        ax.set_xlabel("environment steps")
+        ax.set_ylabel(f"evaluation return ({stat}, 95% CI)")
+        ax.set_title(env_id)
+        ax.grid(alpha=0.3)
+        ax.legend()
+        fig.tight_layout()
+        path = out_dir / f"aggregate_{env_id}.png"
+        fig.savefig(path)
+        plt.close(fig)
+        paths.append(path)
+    return paths
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m sb3_td3x.experiment.aggregate", description=__doc__.split("\n\n")[0])
+    parser.add_argument("paths", nargs="+", type=Path, help="folders holding run folders (searched recursively)")
+    parser.add_argument("--stat", choices=sorted(STATISTICS), default="mean", help="statistic over seeds (default: mean)")
+    parser.add_argument("--out", type=Path, default=None, help="output folder (default: the first path)")
+    args = parser.parse_args(argv)
+    try:
+        runs = load_runs(args.paths)
+    except FileNotFoundError as error:
+        print(f"Error: {error}", file=sys.stderr)
+        return 2
+    table, curves = aggregate(runs, args.stat)
+    out_dir = args.out or args.paths[0]
+    out_dir.mkdir(parents=True, exist_ok=True)
+    table.to_csv(out_dir / "aggregate.csv", index=False)
+    markdown = to_markdown(table)
+    (out_dir / "aggregate.md").write_text(markdown + "\n")
+    plots = plot_curves(curves, args.stat, out_dir)
+    print(markdown)
+    print(f"\nWrote {out_dir / 'aggregate.csv'}, {out_dir / 'aggregate.md'} and {', '.join(map(str, plots))}")
+    return 0
+
+
+def to_markdown(table: pd.DataFrame) -> str:
+    """A Markdown table, floats with one decimal (pandas' own ``to_markdown`` needs the tabulate package)."""
+    cells = [[f"{value:.1f}" if isinstance(value, float) else str(value) for value in row] for row in table.itertuples(index=False)]
+    lines = ["| " + " | ".join(table.columns) + " |", "|" + "---|" * len(table.columns)]
+    return "\n".join(lines + ["| " + " | ".join(row) + " |" for row in cells])
+
+
+if __name__ == "__main__":
+    sys.exit(main())
