@@ -40,7 +40,7 @@ def check_target_features_extractors(model: TD3X, shared: bool) -> None:
 @pytest.mark.xfail(strict=True, raises=AttributeError, reason="TD3X bug: TD3X.load(path) without env reads None.action_space")
 def test_cnn(tmp_path):
     env = FakeImageEnv(screen_height=40, screen_width=40, n_channels=1, discrete=False)
-    model = TD3X("CnnPolicy", env, learning_starts=100, seed=1, **CNN_KWARGS).learn(150)
+    model = TD3X("CnnPolicy", env, learning_starts=100, seed=1, **CNN_KWARGS).learn(120)
     # FakeImageEnv is channel-last: it is wrapped in VecTransposeImage.
     assert is_vecenv_wrapped(model.get_env(), VecTransposeImage)
 
@@ -95,7 +95,7 @@ def test_features_extractor_target_net(share_features_extractor):
     # Targets start equal to their networks...
     params_should_match(model.critic.parameters(), model.critic_target.parameters())
     params_should_match(model.actor.parameters(), model.actor_target.parameters())
-    model.learn(200)
+    model.learn(130)
     # ... and lag behind them once trained.
     params_should_differ(model.critic.parameters(), model.critic_target.parameters())
     params_should_differ(model.actor.parameters(), model.actor_target.parameters())
@@ -132,7 +132,7 @@ def test_features_extractor_target_net(share_features_extractor):
 def test_channel_first_env(tmp_path):
     # Channel-first images are used as they are: a wrong layout would fail building the convolutions.
     env = FakeImageEnv(screen_height=40, screen_width=40, n_channels=1, discrete=False, channel_first=True)
-    model = TD3X("CnnPolicy", env, learning_starts=50, **CNN_KWARGS).learn(100)
+    model = TD3X("CnnPolicy", env, learning_starts=50, **CNN_KWARGS).learn(70)
     assert not is_vecenv_wrapped(model.get_env(), VecTransposeImage)
 
     obs, _ = env.reset()
