@@ -31,6 +31,9 @@ logger = logging.getLogger(__name__)
 
 TUNED_GROUP = "tuned"
 
+#: A worker records the reason of every trial it ends; a FAIL without one was ended by Optuna's heartbeat check.
+STALE_REASON = "its worker stopped sending heartbeats (killed, preempted or cut off) and Optuna marked it FAIL"
+
 
 @dataclass
 class ResultFiles:
@@ -110,7 +113,7 @@ def summary_text(study: optuna.Study, storage_display: str, dashboard_command: s
     if stopped:
         lines += ["", "pruned and failed trials:"]
         for t in stopped:
-            reason = t.user_attrs.get("fail_reason") or t.user_attrs.get("prune_reason") or "no reason recorded"
+            reason = t.user_attrs.get("fail_reason") or t.user_attrs.get("prune_reason") or STALE_REASON
             lines.append(f"  {t.number:4d} {t.state.name:7s} {reason}")
     lines += ["", f"dashboard: {dashboard_command}"]
     return "\n".join(lines) + "\n"
