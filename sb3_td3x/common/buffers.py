@@ -105,24 +105,51 @@ class TensorReplayBuffer(ReplayBuffer):
         infos: list[dict[str, Any]],
     ) -> None:
         pos = self.pos
-        # copy_ converts dtype and device in place; no reference to the caller's arrays is kept.
-        self.observations[pos].copy_(th.as_tensor(np.asarray(obs)).reshape(self.observations.shape[1:]))
-        next_obs_t = th.as_tensor(np.asarray(next_obs)).reshape(self.observations.shape[1:])
-        if self.optimize_memory_usage:
-            self.observations[(pos + 1) % self.buffer_size].copy_(next_obs_t)
+        next_pos = (pos + 1) % self.buffer_size
+        timeouts = [info.get("TimeLimit.truncated", False) for info in infos] if self.handle_timeout_termination else None
+        if self._device.type == "cpu":
+            # numpy views of the CPU tensors: one cast-and-copy per field, no tensor created per step.
+            views = self._numpy_views()
+            views["observations"][pos] = np.reshape(obs, views["observations"].shape[1:])
+            if self.optimize_memory_usage:
+                views["observations"][next_pos] = np.reshape(next_obs, views["observations"].shape[1:])
+            else:
+                views["next_observations"][pos] = np.reshape(next_obs, views["next_observations"].shape[1:])
+            views["actions"][pos] = np.reshape(action, (self.n_envs, self.action_dim))
+            views["rewards"][pos] = np.reshape(reward, self.n_envs)
+            views["dones"][pos] = np.reshape(done, self.n_envs)
+            if timeouts is not None:
+                views["timeouts"][pos] = timeouts
         else:
-            self.next_observations[pos].copy_(next_obs_t)  # type: ignore[index]
-        self.actions[pos].copy_(th.as_tensor(np.asarray(action)).reshape(self.n_envs, self.action_dim))
-        self.rewards[pos].copy_(th.as_tensor(np.asarray(reward)).reshape(self.n_envs))
-        self.dones[pos].copy_(th.as_tensor(np.asarray(done)).reshape(self.n_envs))
-        if self.handle_timeout_termination:
-            timeouts = [info.get("TimeLimit.truncated", False) for info in infos]
-            self.timeouts[pos].copy_(th.as_tensor(timeouts, dtype=th.float32))
+
+            def put(tensor: th.Tensor, index: int, value: Any) -> None:
+                tensor[index].copy_(th.as_tensor(np.asarray(value)).reshape(tensor.shape[1:]), non_blocking=True)
+
+            put(self.observations, pos, obs)
+            if self.optimize_memory_usage:
+                put(self.observations, next_pos, next_obs)
+            else:
+                put(self.next_observations, pos, next_obs)  # type: ignore[arg-type]
+            put(self.actions, pos, action)
+            put(self.rewards, pos, reward)
+            put(self.dones, pos, done)
+            if timeouts is not None:
+                put(self.timeouts, pos, np.asarray(timeouts, dtype=np.float32))
 
         self.pos += 1
         if self.pos == self.buffer_size:
             self.full = True
             self.pos = 0
+
+    def _numpy_views(self) -> dict[str, np.ndarray]:
+        """numpy arrays sharing memory with the CPU storage tensors (rebuilt after a move or a load)."""
+        views = self.__dict__.get("_views")
+        if views is None or views["_owner"] is not self.observations:
+            names = ("observations", "next_observations", "actions", "rewards", "dones", "timeouts")
+            views = {name: getattr(self, name).numpy() for name in names if getattr(self, name) is not None}
+            views["_owner"] = self.observations
+            self._views = views
+        return views
 
     def sample(self, batch_size: int, env: VecNormalize | None = None) -> ReplayBufferSamples:
         """Uniform sample of ``batch_size`` transitions, drawn with torch's generator on the storage device."""
@@ -168,4 +195,5 @@ class TensorReplayBuffer(ReplayBuffer):
             if state.get(name) is not None:
                 state[name] = state[name].cpu()
         state["_device"] = th.device("cpu")
+        state.pop("_views", None)
         return state

@@ -129,6 +129,8 @@ def run_experiment(cfg: DictConfig, report: Callable[[int, float], None] | None 
                     log_interval=cfg.logger.log_interval,
                     reset_num_timesteps=resume_from is None,
                 )
+        if progress is not None:
+            progress.close()  # before the last log lines
         if not evaluation.history:
             raise RuntimeError("The run ended without any evaluation")  # learn() always evaluates at its end
         final = evaluation.history[-1]

@@ -44,6 +44,16 @@ class TD3XPolicy(TD3Policy):
         critic_kwargs = self._update_features_extractor(self.critic_kwargs, features_extractor)
         return TD3XCritic(**critic_kwargs).to(self.device)
 
+    def set_training_mode(self, mode: bool) -> None:
+        """Put the actor and critics in training or evaluation mode (batch norm, dropout); a no-op when already there.
+
+        SB3 calls this twice per environment step (collection, then training); walking every module each time
+        costs more than a small network's forward pass, so the walk is skipped when the mode does not change.
+        """
+        if self.actor.training == mode and self.critic.training == mode and self.training == mode:
+            return
+        super().set_training_mode(mode)
+
     def sb3_state_dict(self) -> dict[str, th.Tensor]:
         """The state dict in the layout of SB3's ``TD3Policy``."""
         return self.state_dict()

@@ -469,6 +469,32 @@ class TD3X(OffPolicyAlgorithm):
             scaled_action = np.clip(scaled_action + action_noise(), -1, 1)
         return self.policy.unscale_action(scaled_action), scaled_action
 
+    def _store_transition(
+        self,
+        replay_buffer: ReplayBuffer,
+        buffer_action: np.ndarray,
+        new_obs: np.ndarray | dict[str, np.ndarray],
+        reward: np.ndarray,
+        dones: np.ndarray,
+        infos: list[dict[str, Any]],
+    ) -> None:
+        """SB3's ``_store_transition``, without its per-step deep copy of the observation when nothing needs it.
+
+        The copy only protects ``new_obs`` when terminal observations are written into ``next_obs``; the tensor
+        buffer copies what it stores, so the copy is made only on steps where an episode ended.
+        """
+        if (
+            isinstance(replay_buffer, TensorReplayBuffer)
+            and self._vec_normalize_env is None
+            and isinstance(new_obs, np.ndarray)
+            and not np.any(dones)
+        ):
+            replay_buffer.add(self._last_obs, new_obs, buffer_action, reward, dones, infos)  # type: ignore[arg-type]
+            self._last_obs = new_obs
+            self._last_original_obs = new_obs
+            return
+        super()._store_transition(replay_buffer, buffer_action, new_obs, reward, dones, infos)
+
     # ------------------------------------------------------------------------------------------------------------
     # Logging, learning-rate schedules, save/load
     # ------------------------------------------------------------------------------------------------------------
