@@ -19,6 +19,7 @@ from stable_baselines3.common.noise import NormalActionNoise, OrnsteinUhlenbeckA
 
 from sb3_td3x import DDPG, TD3X
 
+TINY = dict(policy_kwargs=dict(net_arch=[64, 64]), learning_starts=100, batch_size=64)
 BOX_FLOAT32 = spaces.Box(low=-1, high=1, shape=(2,), dtype=np.float32)
 BOX_FLOAT64 = spaces.Box(low=-1, high=1, shape=(2,), dtype=np.float64)
 
@@ -152,6 +153,25 @@ def test_n_step_returns():
     # The n-step buffer gives each transition its own discount, gamma ** k with k <= n_steps.
     assert batch.discounts is not None
     assert th.all(batch.discounts <= gamma + 1e-6) and th.all(batch.discounts >= gamma**3 - 1e-6)
+
+
+# mirrors SB3 tests/test_save_load.py::test_warn_buffer and tests/test_buffer_optimization.py (memory mode), training
+def test_optimize_memory_usage():
+    model = TD3X(
+        "MlpPolicy",
+        "Pendulum-v1",
+        optimize_memory_usage=True,
+        # The memory-efficient buffer cannot handle timeouts.
+        replay_buffer_kwargs=dict(handle_timeout_termination=False),
+        buffer_size=150,
+        **TINY,
+    )
+    model.learn(total_timesteps=200)
+    buffer = model.replay_buffer
+    assert buffer.optimize_memory_usage
+    # Next observations are read from the following row: no array of their own.
+    assert getattr(buffer, "next_observations", None) is None
+    assert buffer.full and model._n_updates == 100
 
 
 # mirrors SB3 tests/test_custom_policy.py::test_custom_offpolicy
