@@ -34,6 +34,10 @@ def identity_env() -> IdentityEnvBox:
     return IdentityEnvBox(-10, 10)
 
 
+def to_numpy(x) -> np.ndarray:
+    return x.cpu().numpy() if isinstance(x, th.Tensor) else np.asarray(x)
+
+
 def sample_observations(env: DummyVecEnv, n: int = 10) -> np.ndarray:
     env.reset()
     return np.concatenate([env.step([env.action_space.sample()])[0] for _ in range(n)], axis=0)
@@ -207,19 +211,16 @@ def test_save_load_replay_buffer(tmp_path):
         model.load_replay_buffer(path)
         assert model.replay_buffer.device.type == model.device.type
 
-    for name in ("observations", "actions", "rewards", "dones", "timeouts"):
-        np.testing.assert_array_equal(getattr(old_replay_buffer, name), getattr(model.replay_buffer, name))
+    # The buffer may keep its data as numpy arrays (SB3) or as tensors: compare, and feed back, numpy arrays.
+    names = ("observations", "actions", "rewards", "dones", "timeouts")
+    old = {name: to_numpy(getattr(old_replay_buffer, name)) for name in names}
+    for name, value in old.items():
+        np.testing.assert_array_equal(value, to_numpy(getattr(model.replay_buffer, name)), err_msg=name)
     assert model.replay_buffer.size() == old_replay_buffer.size() == 300
 
-    infos = [[{"TimeLimit.truncated": truncated}] for truncated in old_replay_buffer.timeouts]
-    model.replay_buffer.extend(
-        old_replay_buffer.observations,
-        old_replay_buffer.observations,
-        old_replay_buffer.actions,
-        old_replay_buffer.rewards,
-        old_replay_buffer.dones,
-        infos,
-    )
+    # extend() takes SB3's add() arguments, one row per env step.
+    infos = [[{"TimeLimit.truncated": truncated}] for truncated in old["timeouts"]]
+    model.replay_buffer.extend(old["observations"], old["observations"], old["actions"], old["rewards"], old["dones"], infos)
     # And the loaded buffer trains the model.
     model.train(gradient_steps=2, batch_size=32)
 
