@@ -227,7 +227,12 @@ def test_action_spaces(model_class):
 @pytest.mark.parametrize("model_class", [TD3X, DDPG])
 @pytest.mark.parametrize(
     "observation_space",
-    [BOX_FLOAT32, BOX_FLOAT64, spaces.Dict({"a": BOX_FLOAT32, "b": BOX_FLOAT32}), spaces.Dict({"a": BOX_FLOAT32, "b": BOX_FLOAT64})],
+    [
+        BOX_FLOAT32,
+        BOX_FLOAT64,
+        spaces.Dict({"a": BOX_FLOAT32, "b": BOX_FLOAT32}),
+        spaces.Dict({"a": BOX_FLOAT32, "b": BOX_FLOAT64}),
+    ],
 )
 @pytest.mark.parametrize("action_space", [BOX_FLOAT32, BOX_FLOAT64])
 def test_float64_action_space(model_class, observation_space, action_space):

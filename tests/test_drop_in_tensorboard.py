@@ -41,9 +41,8 @@ class HParamCallback(BaseCallback):
 )
 def test_tensorboard(tmp_path, model_class, log_name):
     pytest.importorskip("tensorboard")
-    model = model_class(
-        "MlpPolicy", "Pendulum-v1", tensorboard_log=tmp_path, train_freq=2, learning_starts=50, batch_size=32, buffer_size=1_000
-    )
+    kwargs = dict(train_freq=2, learning_starts=50, batch_size=32, buffer_size=1_000)
+    model = model_class("MlpPolicy", "Pendulum-v1", tensorboard_log=tmp_path, **kwargs)
     model.learn(N_STEPS, callback=HParamCallback())
     # TD3X's own training metrics reach the logger.
     for key in ("train/critic_loss", "train/actor_loss", "train/n_updates"):
