@@ -33,7 +33,8 @@ from sb3_td3x.sweeps.storage import StudyStorage, heartbeat
 
 logger = logging.getLogger(__name__)
 
-UNFINISHED = (TrialState.RUNNING, TrialState.WAITING)
+#: How often a worker with nothing left to start looks whether the others' trials have ended.
+WAIT_POLL_S = 2.0
 
 
 class SweepInterrupted(Exception):
@@ -203,7 +204,7 @@ def _wait_for_others(study: optuna.Study, study_storage: StudyStorage) -> bool:
         if not reported:
             logger.info("no trial left to start; waiting for trials %s running in other workers", running)
             reported = True
-        time.sleep(study_storage.heartbeat_interval)
+        time.sleep(min(study_storage.heartbeat_interval, WAIT_POLL_S))
 
 
 def study_dir_for(output_dir: Path, study_name: str) -> Path:
