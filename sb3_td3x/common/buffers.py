@@ -151,10 +151,37 @@ class TensorReplayBuffer(ReplayBuffer):
             self._views = views
         return views
 
+    def enable_static_sampling(self) -> None:
+        """Sample with bounds held in device tensors, so that a captured CUDA graph samples the buffer as it grows.
+
+        Call :meth:`refresh_static_bounds` before each replay; indices are ``(offset + floor(u * span)) % size``.
+        """
+        self._static_offset = th.zeros((), dtype=th.long, device=self._device)
+        self._static_span = th.ones((), dtype=th.float32, device=self._device)
+        self.refresh_static_bounds()
+
+    def refresh_static_bounds(self) -> None:
+        """Write the current valid index range into the static bound tensors (asynchronous fills, no sync)."""
+        if self.optimize_memory_usage and self.full:
+            # Index ``pos`` holds the newest next-observation, not a valid transition: skip it (as SB3 does).
+            offset, span = self.pos + 1, self.buffer_size - 1
+        else:
+            offset, span = 0, self.buffer_size if self.full else self.pos
+        self._static_offset.fill_(offset)
+        self._static_span.fill_(max(span, 1))
+
+    @property
+    def static_sampling(self) -> bool:
+        return "_static_span" in self.__dict__
+
     def sample(self, batch_size: int, env: VecNormalize | None = None) -> ReplayBufferSamples:
         """Uniform sample of ``batch_size`` transitions, drawn with torch's generator on the storage device."""
         device = self._device
-        if self.optimize_memory_usage:
+        if self.static_sampling:
+            u = th.rand(batch_size, device=device)
+            steps = th.minimum((u * self._static_span).long(), self._static_span.long() - 1)
+            batch_inds = (self._static_offset + steps) % self.buffer_size
+        elif self.optimize_memory_usage:
             # Index ``pos`` holds the newest next-observation, not a valid transition: skip it (as SB3 does).
             if self.full:
                 batch_inds = (th.randint(1, self.buffer_size, (batch_size,), device=device) + self.pos) % self.buffer_size

@@ -43,16 +43,38 @@ def build_parser() -> argparse.ArgumentParser:
         help="sqlite:///path.db, postgresql://user:password@host:5432/db, any SQLAlchemy URL, or a journal file "
         "journal:path.log; default: the file's storage, else sqlite:///<output-dir>/<study>/optuna.db",
     )
-    parser.add_argument("--n-trials", type=int, help="trials the study holds in total, shared by all workers (default: the file's)")
-    parser.add_argument("--output-dir", type=Path, default=Path("runs/sweeps"), help="study folders go here (default: %(default)s)")
+    parser.add_argument(
+        "--n-trials", type=int, help="trials the study holds in total, shared by all workers (default: the file's)"
+    )
+    parser.add_argument(
+        "--output-dir", type=Path, default=Path("runs/sweeps"), help="study folders go here (default: %(default)s)"
+    )
     parser.add_argument("--config-dir", type=Path, help="the conf/ folder run.py composes (default: the repository's conf/)")
-    parser.add_argument("--heartbeat-interval", type=int, default=60, help="seconds between heartbeats of a running trial (default: %(default)s)")
-    parser.add_argument("--grace-period", type=int, help="seconds without heartbeat before a trial is marked FAIL (default: twice the interval)")
-    parser.add_argument("--retry-stale", type=int, default=0, help="queue a dead worker's trial again up to N times (default: %(default)s)")
-    parser.add_argument("--max-consecutive-failures", type=int, default=5, help="stop a worker after N crashed trials in a row (default: %(default)s)")
+    parser.add_argument(
+        "--heartbeat-interval",
+        type=int,
+        default=60,
+        help="seconds between heartbeats of a running trial (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--grace-period",
+        type=int,
+        help="seconds without heartbeat before a trial is marked FAIL (default: twice the interval)",
+    )
+    parser.add_argument(
+        "--retry-stale", type=int, default=0, help="queue a dead worker's trial again up to N times (default: %(default)s)"
+    )
+    parser.add_argument(
+        "--max-consecutive-failures",
+        type=int,
+        default=5,
+        help="stop a worker after N crashed trials in a row (default: %(default)s)",
+    )
     parser.add_argument("--report", action="store_true", help="only write the results of the study in the storage")
     parser.add_argument("--launcher", type=Path, help="submit --workers jobs with this launcher file (sweeps/launcher/*.yaml)")
-    parser.add_argument("--workers", type=int, default=1, help="number of worker jobs to submit with --launcher (default: %(default)s)")
+    parser.add_argument(
+        "--workers", type=int, default=1, help="number of worker jobs to submit with --launcher (default: %(default)s)"
+    )
     parser.add_argument("--wait", action="store_true", help="with --launcher: wait for the jobs and report their exit")
     parser.add_argument("-q", "--quiet", action="store_true", help="log only warnings")
     return parser
@@ -100,7 +122,9 @@ def _run(args: argparse.Namespace) -> int:
     study = open_study(spec, study_storage, study_name, spec.overrides + args.overrides)
 
     def finish(finished_study: optuna.Study) -> None:
-        files = write_results(finished_study, study_dir, config_dir, study_storage.display_url, study_storage.dashboard_command())
+        files = write_results(
+            finished_study, study_dir, config_dir, study_storage.display_url, study_storage.dashboard_command()
+        )
         print(files.summary)
         if files.best_overrides is not None:
             print(f"best overrides: {files.best_overrides}   (python run.py $(cat {files.best_overrides}))")
@@ -111,11 +135,20 @@ def _run(args: argparse.Namespace) -> int:
         finish(study)
         return 0
 
-    logger.info("study %s in %s: %d trials wanted, %d there", study_name, study_storage.display_url, n_trials, len(study.trials))
+    logger.info(
+        "study %s in %s: %d trials wanted, %d there", study_name, study_storage.display_url, n_trials, len(study.trials)
+    )
     previous = signal.signal(signal.SIGTERM, _raise_keyboard_interrupt)  # scancel / preemption: stop like Ctrl-C
     try:
-        summary = run_worker(study, spec, study_storage, TrialObjective(spec, config_dir, args.overrides, study_dir), n_trials,
-                             args.max_consecutive_failures, on_finished=finish)
+        summary = run_worker(
+            study,
+            spec,
+            study_storage,
+            TrialObjective(spec, config_dir, args.overrides, study_dir),
+            n_trials,
+            args.max_consecutive_failures,
+            on_finished=finish,
+        )
     except SweepInterrupted as err:
         print(str(err), file=sys.stderr)
         return 130
@@ -132,10 +165,14 @@ def _launch(args: argparse.Namespace, storage_url: str, study_dir: Path, study_n
 
     if args.workers < 1:
         raise SweepError(f"--workers must be at least 1, got {args.workers}")
-    open_storage(storage_url, study_name, args.heartbeat_interval, args.grace_period, args.retry_stale)  # fail here, not in N jobs
+    open_storage(
+        storage_url, study_name, args.heartbeat_interval, args.grace_period, args.retry_stale
+    )  # fail here, not in N jobs
     cluster, executor_params = load_launcher(args.launcher, study_dir / "jobs", f"sweep-{study_name}")
     if storage_url.startswith("sqlite") and cluster == "slurm":
-        logger.warning("SQLite on a cluster's shared file system is fragile with many workers; prefer --storage postgresql://...")
+        logger.warning(
+            "SQLite on a cluster's shared file system is fragile with many workers; prefer --storage postgresql://..."
+        )
     worker_argv = _worker_argv(args, storage_url, study_dir)
     jobs = submit_workers(cluster, executor_params, args.workers, main, worker_argv)
     print(f"submitted {len(jobs)} {cluster} worker job(s): {', '.join(str(job.job_id) for job in jobs)}")
@@ -152,10 +189,24 @@ def _worker_argv(args: argparse.Namespace, storage_url: str, study_dir: Path) ->
     config_dir = (args.config_dir or Path(__file__).resolve().parents[2] / "conf").resolve()
     if storage_url.startswith("sqlite:///") and not storage_url.startswith("sqlite:////"):
         storage_url = f"sqlite:///{Path(storage_url.removeprefix('sqlite:///')).resolve()}"
-    worker_argv = [str(args.sweep_file.resolve()), *args.overrides, "--storage", storage_url,
-                   "--study-name", study_dir.name, "--output-dir", str(study_dir.parent), "--config-dir", str(config_dir),
-                   "--heartbeat-interval", str(args.heartbeat_interval), "--retry-stale", str(args.retry_stale),
-                   "--max-consecutive-failures", str(args.max_consecutive_failures)]
+    worker_argv = [
+        str(args.sweep_file.resolve()),
+        *args.overrides,
+        "--storage",
+        storage_url,
+        "--study-name",
+        study_dir.name,
+        "--output-dir",
+        str(study_dir.parent),
+        "--config-dir",
+        str(config_dir),
+        "--heartbeat-interval",
+        str(args.heartbeat_interval),
+        "--retry-stale",
+        str(args.retry_stale),
+        "--max-consecutive-failures",
+        str(args.max_consecutive_failures),
+    ]
     if args.n_trials is not None:
         worker_argv += ["--n-trials", str(args.n_trials)]
     if args.grace_period is not None:

@@ -14,6 +14,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import yaml
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
@@ -40,7 +41,7 @@ def load_launcher(path: str | Path, job_folder: Path, job_name: str) -> tuple[st
         raise SweepSpecError(f"launcher file {source} does not exist (the ready ones are in sweeps/launcher/)")
     try:
         loaded = OmegaConf.load(source)
-    except Exception as err:
+    except (yaml.YAMLError, UnicodeDecodeError) as err:
         raise SweepSpecError(f"launcher file {source} is not valid YAML: {err}") from None
     target = loaded.get("_target_") if isinstance(loaded, DictConfig) else None
     if target not in _LAUNCHERS:

@@ -35,8 +35,9 @@ TRIAL_DEFAULTS = ["progress_bar=false"]
 
 def compose_config(config_dir: Path, overrides: list[str]) -> DictConfig:
     """Compose ``conf/config.yaml`` with ``overrides``, as ``python run.py <overrides>`` does."""
-    import sb3_td3x.experiment.schemas  # noqa: F401  (registers the schemas and resolvers that conf/ uses)
     from hydra import compose, initialize_config_dir
+
+    import sb3_td3x.experiment.schemas  # noqa: F401  (registers the schemas and resolvers that conf/ uses)
 
     with initialize_config_dir(config_dir=str(config_dir.resolve()), version_base="1.3", job_name="sweep"):
         return compose("config", overrides=overrides)
@@ -163,11 +164,13 @@ class TrialObjective:
         except optuna.TrialPruned as pruned:
             return TrialResult(optuna.trial.TrialState.PRUNED, reason=str(pruned))
         except TrainingDiverged as err:
-            return TrialResult(optuna.trial.TrialState.FAIL, reason=f"diverged: {err.what} became {err.value} at step {err.num_timesteps}")
+            return TrialResult(
+                optuna.trial.TrialState.FAIL, reason=f"diverged: {err.what} became {err.value} at step {err.num_timesteps}"
+            )
         except (KeyboardInterrupt, TrainingInterrupted) as err:
             signal_name = getattr(err, "signal_name", "SIGINT")
             return TrialResult(optuna.trial.TrialState.FAIL, reason=f"interrupted by {signal_name}", interrupted=True)
-        except Exception as err:  # any crash in one trial is recorded on it; the study goes on
+        except Exception as err:  # noqa: BLE001  (any crash in one trial is recorded on it; the study goes on)
             self._write_traceback(run_dir)
             first_line = (str(err).strip().splitlines() or [""])[0]
             return TrialResult(optuna.trial.TrialState.FAIL, reason=f"{type(err).__name__}: {first_line}")

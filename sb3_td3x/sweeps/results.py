@@ -81,8 +81,9 @@ def tuned_config(overrides: list[str], config_dir: Path) -> str:
 
 def _config_groups(config_dir: Path, overrides: list[str]) -> set[str]:
     """The config groups of the composed config (``algo``, ``env``, ...): their overrides choose a file."""
-    import sb3_td3x.experiment.schemas  # noqa: F401
     from hydra import compose, initialize_config_dir
+
+    import sb3_td3x.experiment.schemas  # noqa: F401
 
     with initialize_config_dir(config_dir=str(config_dir.resolve()), version_base="1.3", job_name="sweep"):
         cfg = compose("config", overrides=overrides, return_hydra_config=True)
@@ -101,8 +102,10 @@ def summary_text(study: optuna.Study, storage_display: str, dashboard_command: s
     if complete:
         best = study.best_trial
         lines += [
-            f"best: trial {best.number}, {metric} = {best.value:.3f}, seed {best.user_attrs.get('seed')}, "
-            f"run folder {best.user_attrs.get('run_dir')}",
+            (
+                f"best: trial {best.number}, {metric} = {best.value:.3f}, seed {best.user_attrs.get('seed')}, "
+                f"run folder {best.user_attrs.get('run_dir')}"
+            ),
             "",
             "top trials:",
             _table(sorted(complete, key=lambda t: t.value, reverse=study.direction.name == "MAXIMIZE")[:10]),
@@ -160,7 +163,7 @@ def save_plots(study: optuna.Study, plot_dir: Path) -> list[Path]:
             os.replace(tmp, path)
             plt.close(figure)
             saved.append(path)
-        except Exception as err:  # e.g. importances need two completed trials with varied parameters
+        except Exception as err:  # noqa: BLE001  (e.g. importances need two completed trials with varied parameters)
             logger.info("plot %s skipped: %s", name, err)
     return saved
 

@@ -31,6 +31,7 @@ from pathlib import Path
 from typing import Any
 
 import optuna
+import yaml
 from omegaconf import MISSING, DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 from optuna.distributions import BaseDistribution, CategoricalDistribution, FloatDistribution, IntDistribution
@@ -155,6 +156,7 @@ class SweepSpec:
 
 
 def _instantiate(config: dict[str, Any], base: type, what: str, source: Path) -> Any:
+    from hydra.errors import HydraException
     from hydra.utils import instantiate
 
     if "_target_" not in config:
@@ -164,7 +166,7 @@ def _instantiate(config: dict[str, Any], base: type, what: str, source: Path) ->
         )
     try:
         obj = instantiate(config)
-    except Exception as err:  # Hydra wraps import and argument errors in InstantiationException
+    except HydraException as err:  # InstantiationException: an unknown _target_, or arguments it does not take
         raise SweepSpecError(f"{source}: cannot build the {what} {config['_target_']!r}: {_first_line(err)}") from None
     if not isinstance(obj, base):
         raise SweepSpecError(f"{source}: '{what}._target_' {config['_target_']!r} is not an Optuna {base.__name__}")
@@ -241,7 +243,7 @@ def load_sweep(path: str | Path) -> SweepSpec:
         raise SweepSpecError(f"sweep file {source} does not exist (the ready ones are in sweeps/*.yaml)")
     try:
         loaded = OmegaConf.load(source)
-    except Exception as err:  # yaml.YAMLError and friends: report the position, not the parser's stack
+    except (yaml.YAMLError, UnicodeDecodeError) as err:  # report the position, not the parser's stack
         raise SweepSpecError(f"{source} is not valid YAML: {err}") from None
     if not isinstance(loaded, DictConfig):
         raise SweepSpecError(f"{source} must be a mapping of fields (study_name, metric, ...), not a list")
@@ -249,7 +251,9 @@ def load_sweep(path: str | Path) -> SweepSpec:
     # training config, not to this file.
     overrides = OmegaConf.to_container(loaded, resolve=False).get("overrides", [])
     if not isinstance(overrides, list) or not all(isinstance(o, str) for o in overrides):
-        raise SweepSpecError(f"{source}: overrides must be a list of Hydra overrides such as [env=hopper, total_timesteps=300000]")
+        raise SweepSpecError(
+            f"{source}: overrides must be a list of Hydra overrides such as [env=hopper, total_timesteps=300000]"
+        )
     loaded.overrides = []
     try:
         config = OmegaConf.merge(OmegaConf.structured(SweepFileSchema), loaded)

@@ -21,9 +21,9 @@ import threading
 import time
 import warnings
 from collections.abc import Callable, Iterator
+from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import ContextManager
 
 import optuna
 from optuna.storages import BaseStorage, JournalStorage, RDBStorage, RetryHeartbeatStaleTrialCallback
@@ -42,7 +42,7 @@ class StudyStorage:
 
     url: str  #: as the user gave it; what ``optuna-dashboard`` is pointed at (a path for a journal file)
     storage: BaseStorage
-    budget_lock: Callable[[], ContextManager[None]]
+    budget_lock: Callable[[], AbstractContextManager[None]]
     heartbeat_interval: int | None  #: ``None`` where the storage has no heartbeat (journal files)
 
     @property
@@ -59,18 +59,18 @@ def is_journal(url: str) -> bool:
 
 
 def journal_path(url: str) -> Path:
-    path = url[len(JOURNAL_PREFIX) :] if url.startswith(JOURNAL_PREFIX) else url
-    return Path(path.removeprefix("//"))
+    return Path(url.removeprefix(JOURNAL_PREFIX).removeprefix("//"))
 
 
 def mask_password(url: str) -> str:
     if "://" not in url:
         return url
     from sqlalchemy.engine import make_url
+    from sqlalchemy.exc import ArgumentError
 
     try:
         return make_url(url).render_as_string(hide_password=True)
-    except Exception:  # not a SQLAlchemy URL: open_storage reports that; here it is only shown
+    except ArgumentError:  # not a SQLAlchemy URL: open_storage reports that; here it is only shown
         return url
 
 
@@ -131,7 +131,9 @@ def _open_rdb(url: str, study_name: str, heartbeat_interval: int, grace_period: 
     elif backend in ("postgresql", "mysql", "mariadb"):
         engine_kwargs["connect_args"] = {"connect_timeout": 10}
     if grace_period is not None and grace_period <= heartbeat_interval:
-        raise StorageError(f"grace period ({grace_period}s) must be longer than the heartbeat interval ({heartbeat_interval}s)")
+        raise StorageError(
+            f"grace period ({grace_period}s) must be longer than the heartbeat interval ({heartbeat_interval}s)"
+        )
     callback = RetryHeartbeatStaleTrialCallback(max_retry=retry_stale) if retry_stale > 0 else None
     try:
         storage = _create_rdb(url, engine_kwargs, heartbeat_interval, grace_period, callback)
@@ -191,7 +193,7 @@ def _open_journal(url: str, study_name: str) -> StudyStorage:
     return StudyStorage(url, storage, lambda: _file_lock(path), heartbeat_interval=None)
 
 
-def _rdb_lock(storage: RDBStorage, backend: str, study_name: str, url: str) -> Callable[[], ContextManager[None]]:
+def _rdb_lock(storage: RDBStorage, backend: str, study_name: str, url: str) -> Callable[[], AbstractContextManager[None]]:
     if backend == "sqlite":
         database = storage.engine.url.database
         if not database or database == ":memory:":
@@ -199,7 +201,9 @@ def _rdb_lock(storage: RDBStorage, backend: str, study_name: str, url: str) -> C
         path = Path(database)
         return lambda: _file_lock(path)
     if backend == "postgresql":
-        key = int.from_bytes(hashlib.blake2b(f"sb3_td3x.sweeps:{study_name}".encode(), digest_size=8).digest(), "big", signed=True)
+        key = int.from_bytes(
+            hashlib.blake2b(f"sb3_td3x.sweeps:{study_name}".encode(), digest_size=8).digest(), "big", signed=True
+        )
         return lambda: _sql_lock(storage, "SELECT pg_advisory_lock(:key)", "SELECT pg_advisory_unlock(:key)", {"key": key})
     if backend in ("mysql", "mariadb"):
         name = f"sb3_td3x.sweeps:{study_name}"[:64]
@@ -251,7 +255,7 @@ def heartbeat(study_storage: StudyStorage, trial_id: int) -> Iterator[None]:
         while True:
             try:
                 storage.record_heartbeat(trial_id)
-            except Exception as err:  # a database hiccup must not kill the trial; the next beat may succeed
+            except Exception as err:  # noqa: BLE001  (a database hiccup must not kill the trial; the next beat may succeed)
                 logger.warning("heartbeat of trial id %d failed: %s", trial_id, err)
             if stop.wait(interval):
                 return

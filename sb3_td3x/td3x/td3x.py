@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any, ClassVar, TypeVar
 
@@ -18,6 +19,7 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, ReplayB
 from stable_baselines3.common.utils import FloatSchedule, get_parameters_by_name, update_learning_rate
 
 from sb3_td3x.common.buffers import TensorReplayBuffer
+from sb3_td3x.td3x.acceleration import GraphedGradientStep, autocast_context, compiled_step
 from sb3_td3x.td3x.policies import CnnPolicy, MlpPolicy, MultiInputPolicy, TD3XPolicy
 
 SelfTD3X = TypeVar("SelfTD3X", bound="TD3X")
@@ -111,6 +113,11 @@ class TD3X(OffPolicyAlgorithm):
         DDPG's target action a' = pi_phi'(s')
     :param clipped_double_q: use the minimum over the critic targets in the TD target (step 8). ``False`` uses the
         first critic target only, as DDPG does
+    :param bf16: opt-in: run the forward passes of the update under bf16 autocast (AMX on recent x86 CPUs,
+        tensor cores on GPUs), with fp32 weights, optimizer states and losses
+    :param compile_update: opt-in: ``torch.compile`` the whole gradient step (the first steps pay the compilation)
+    :param cuda_graph: opt-in, CUDA only: capture the whole gradient step, sampling included, in CUDA graphs and
+        replay them (no kernel-launch or Python overhead per step)
     :param _init_setup_model: Whether or not to build the network at the creation of the instance
     """
 
@@ -150,6 +157,9 @@ class TD3X(OffPolicyAlgorithm):
         critic_learning_rate: float | Schedule | None = None,
         target_policy_smoothing: bool = True,
         clipped_double_q: bool = True,
+        bf16: bool = False,
+        compile_update: bool = False,
+        cuda_graph: bool = False,
         _init_setup_model: bool = True,
     ):
         self._check_hyperparameters(
@@ -209,6 +219,9 @@ class TD3X(OffPolicyAlgorithm):
         self.critic_learning_rate = critic_learning_rate
         self.target_policy_smoothing = target_policy_smoothing
         self.clipped_double_q = clipped_double_q
+        self.bf16 = bf16
+        self.compile_update = compile_update
+        self.cuda_graph = cuda_graph
         # Number of actor (delayed) updates done so far; saved with the model.
         self._n_actor_updates = 0
 
@@ -218,6 +231,12 @@ class TD3X(OffPolicyAlgorithm):
     # ------------------------------------------------------------------------------------------------------------
     # Set-up (steps 1-3: replay buffer, actor, critics and their targets)
     # ------------------------------------------------------------------------------------------------------------
+    def _check_cuda_graph_setup(self) -> None:
+        if self.device.type != "cuda":
+            raise ValueError(f"cuda_graph=True needs a CUDA device, got device={self.device}; use device='cuda'.")
+        if self.compile_update:
+            raise ValueError("cuda_graph=True and compile_update=True are exclusive: choose one.")
+
     @staticmethod
     def _check_action_space(action_space: spaces.Space) -> None:
         if not isinstance(action_space, spaces.Box):
@@ -276,7 +295,21 @@ class TD3X(OffPolicyAlgorithm):
         if self.replay_buffer_class is None and isinstance(self.observation_space, spaces.Box) and self.n_steps == 1:
             # Step 1: the replay buffer, kept as tensors on the training device (SB3's other buffers otherwise).
             self.replay_buffer_class = TensorReplayBuffer
+        if self.cuda_graph:
+            self._check_cuda_graph_setup()
+            # CUDA graphs need the optimizer's step counter on the device.
+            optimizer_kwargs = dict(self.policy_kwargs.get("optimizer_kwargs") or {})
+            optimizer_kwargs["capturable"] = True
+            self.policy_kwargs["optimizer_kwargs"] = optimizer_kwargs
         super()._setup_model()
+        if self.cuda_graph:
+            if not isinstance(self.replay_buffer, TensorReplayBuffer):
+                raise ValueError(
+                    "cuda_graph=True samples the replay buffer inside the graph: it needs TD3X's TensorReplayBuffer "
+                    f"(Box observations, n_steps=1, replay_buffer_class=None), got {type(self.replay_buffer).__name__}."
+                )
+            self.replay_buffer.enable_static_sampling()
+        self._step_fn: Any = None
         self.critic_lr_schedule = (
             self.lr_schedule if self.critic_learning_rate is None else FloatSchedule(self.critic_learning_rate)
         )
@@ -312,23 +345,51 @@ class TD3X(OffPolicyAlgorithm):
         # Detached tensors, averaged once after the loop: no host-device synchronisation per gradient step.
         critic_infos: list[dict[str, th.Tensor]] = []
         actor_infos: list[dict[str, th.Tensor]] = []
+        step = self._gradient_step_fn()
         for _ in range(gradient_steps):
             self._n_updates += 1
-            batch = self.sample_batch(batch_size)  # step 4
-            target_q = self.compute_target_q(batch)  # steps 5-9
-            critic_loss, critic_info = self.critic_loss(self.current_q_values(batch), target_q)  # steps 10-11
-            self.optimize_critic(critic_loss)  # step 12
+            update_actor = self.should_update_actor(self._n_updates)  # step 13: delayed policy updates
+            critic_info, actor_info = step(batch_size, update_actor)
             critic_infos.append(critic_info)
-
-            if self.should_update_actor(self._n_updates):  # step 13: delayed policy update
-                actor_loss, actor_info = self.actor_loss(batch.observations)
-                self.optimize_actor(actor_loss)
+            if update_actor:
                 self._n_actor_updates += 1
                 actor_infos.append(actor_info)
-                self.update_critic_target()  # step 15
-                self.update_actor_target()  # step 14
 
         self._log_train_infos(critic_infos, actor_infos)
+
+    def gradient_step(self, batch_size: int, update_actor: bool) -> tuple[dict[str, th.Tensor], dict[str, th.Tensor]]:
+        """One gradient step: steps 4 to 15 in order; the actor and the targets only when ``update_actor``.
+
+        :return: the detached statistics of the critic loss and of the actor loss (empty without actor update)
+        """
+        with self._autocast():
+            batch = self.sample_batch(batch_size)  # step 4
+            target_q = self.compute_target_q(batch)  # steps 5-9
+            current_q = self.current_q_values(batch)  # step 10
+        critic_loss, critic_info = self.critic_loss(current_q, target_q)  # step 11
+        self.optimize_critic(critic_loss)  # step 12
+        if not update_actor:
+            return critic_info, {}
+        with self._autocast():
+            actor_loss, actor_info = self.actor_loss(batch.observations)  # step 13
+        self.optimize_actor(actor_loss)
+        self.update_critic_target()  # step 15
+        self.update_actor_target()  # step 14
+        return critic_info, actor_info
+
+    def _autocast(self) -> contextlib.AbstractContextManager:
+        return autocast_context(self.device, self.bf16)
+
+    def _gradient_step_fn(self) -> Callable[[int, bool], tuple[dict[str, th.Tensor], dict[str, th.Tensor]]]:
+        """``gradient_step`` itself, or its compiled or CUDA-graphed form when those are switched on."""
+        if self._step_fn is None:
+            if self.cuda_graph:
+                self._step_fn = GraphedGradientStep(self)
+            elif self.compile_update:
+                self._step_fn = compiled_step(self.gradient_step)
+            else:
+                self._step_fn = self.gradient_step
+        return self._step_fn
 
     # Step 4 ------------------------------------------------------------------------------------------------------
     def sample_batch(self, batch_size: int) -> ReplayBufferSamples:
@@ -394,10 +455,11 @@ class TD3X(OffPolicyAlgorithm):
         :param target_q: shape (batch_size, 1), no gradient
         :return: the loss and detached statistics for logging
         """
-        td_errors = current_q - target_q.unsqueeze(0)  # (n_critics, batch_size, 1)
+        # In fp32 also under bf16 autocast (a no-op otherwise)
+        td_errors = current_q.float() - target_q.float().unsqueeze(0)  # (n_critics, batch_size, 1)
         loss = td_errors.pow(2).mean(dim=(1, 2)).sum()
-        info = {"critic_loss": loss.detach(), "target_q": target_q.mean()}
-        q_means = current_q.detach().mean(dim=(1, 2))  # (n_critics,)
+        info = {"critic_loss": loss.detach(), "target_q": target_q.float().mean()}
+        q_means = current_q.detach().float().mean(dim=(1, 2))  # (n_critics,)
         for i in range(current_q.shape[0]):
             info[f"q{i + 1}"] = q_means[i]
         return loss, info
@@ -419,7 +481,7 @@ class TD3X(OffPolicyAlgorithm):
         The critic is frozen while the loss is built, so back-propagating it leaves the critic without gradient.
         """
         with frozen(self.critic):
-            loss = -self.critic.q1_forward(observations, self.actor(observations)).mean()
+            loss = -self.critic.q1_forward(observations, self.actor(observations)).float().mean()
         return loss, {"actor_loss": loss.detach()}
 
     def optimize_actor(self, loss: th.Tensor) -> None:
@@ -549,6 +611,7 @@ class TD3X(OffPolicyAlgorithm):
             "actor_target",
             "critic_target",
             "critic_lr_schedule",
+            "_step_fn",
             "_actor_params",
             "_actor_target_params",
             "_critic_params",

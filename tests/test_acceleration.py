@@ -1,0 +1,147 @@
+"""The opt-in accelerations: bf16 autocast, torch.compile, and the CUDA-graph path's logic (run on the CPU)."""
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch as th
+from stable_baselines3.common.evaluation import evaluate_policy
+from stable_baselines3.common.logger import configure
+from stable_baselines3.common.monitor import Monitor
+from stable_baselines3.common.noise import NormalActionNoise
+from stable_baselines3.common.type_aliases import ReplayBufferSamples
+
+from sb3_td3x import TD3X
+from sb3_td3x.common.buffers import TensorReplayBuffer
+from sb3_td3x.td3x.acceleration import GraphedGradientStep
+
+
+def batches(n: int, seed: int = 0) -> list[ReplayBufferSamples]:
+    g = th.Generator().manual_seed(seed)
+    return [
+        ReplayBufferSamples(th.randn(32, 3, generator=g), th.rand(32, 1, generator=g) * 2 - 1, th.randn(32, 3, generator=g),
+                            (th.rand(32, 1, generator=g) < 0.2).float(), th.randn(32, 1, generator=g))
+        for _ in range(n)
+    ]
+
+
+def small(**kwargs) -> TD3X:
+    model = TD3X("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(net_arch=[32, 32]), learning_starts=0, seed=0, **kwargs)
+    model.set_logger(configure(None, []))
+    return model
+
+
+def test_bf16_keeps_fp32_weights_and_follows_fp32_closely():
+    fp32, bf16 = small(), small(bf16=True)
+    bf16.policy.load_state_dict(fp32.policy.state_dict())
+    data = batches(4)
+    for model in (fp32, bf16):
+        it = iter(data)
+        model.sample_batch = lambda batch_size, it=it: next(it)
+        th.manual_seed(0)
+        model.train(gradient_steps=4, batch_size=32)
+    assert all(p.dtype == th.float32 for p in bf16.policy.parameters())
+    for (name, a), b in zip(fp32.policy.state_dict().items(), bf16.policy.state_dict().values()):
+        th.testing.assert_close(b, a, rtol=0.05, atol=2e-3, msg=name)
+    assert np.isfinite(bf16.logger.name_to_value["train/critic_loss"])
+
+
+def test_cuda_graph_needs_cuda():
+    with pytest.raises(ValueError, match="CUDA device"):
+        small(cuda_graph=True, device="cpu")
+
+
+def eager_capture(fn, pool):
+    """CPU stand-in for CUDA graph capture: 'replay' reruns the step and writes into the static outputs."""
+    outputs = fn()
+
+    def replay():
+        new = fn()
+        for static, fresh in zip(outputs, new):
+            for key in static:
+                static[key].copy_(fresh[key])
+
+    return replay, outputs, pool
+
+
+def test_graphed_step_logic_matches_eager_steps():
+    """Warm-up and capture leave no trace, each (batch size, actor update) gets its graph, outputs are copied.
+
+    Without smoothing noise: warm-up and capture draw from the RNG (and a real graph draws from its own offsets).
+    """
+    eager, graphed = small(policy_delay=2, target_policy_smoothing=False), small(policy_delay=2, target_policy_smoothing=False)
+    graphed.policy.load_state_dict(eager.policy.state_dict())
+    data = batches(6)
+    junk = batches(1, seed=99)[0]
+
+    eager_it = iter(data)
+    eager.sample_batch = lambda batch_size: next(eager_it)
+    graphed_it = iter(data)
+    graphed.in_capture = False
+    graphed.sample_batch = lambda batch_size: junk if graphed.in_capture else next(graphed_it)
+
+    class Probe(GraphedGradientStep):
+        def _capture(self, batch_size, update_actor):
+            graphed.in_capture = True
+            try:
+                return super()._capture(batch_size, update_actor)
+            finally:
+                graphed.in_capture = False
+
+    # The CPU buffer takes the static-bounds sampling the CUDA path uses.
+    graphed.replay_buffer.enable_static_sampling()
+    probe = Probe(graphed, capture=eager_capture)
+    graphed._step_fn = probe
+    th.manual_seed(0)
+    eager.train(gradient_steps=6, batch_size=32)
+    eager_logged = dict(eager.logger.name_to_value)
+    th.manual_seed(0)
+    graphed.train(gradient_steps=6, batch_size=32)
+    assert sorted(probe._graphs) == [(32, False), (32, True)]
+    for (name, a), b in zip(eager.policy.state_dict().items(), graphed.policy.state_dict().values()):
+        th.testing.assert_close(b, a, rtol=1e-5, atol=1e-6, msg=name)
+    for key in ("train/critic_loss", "train/actor_loss", "train/q1_mean", "train/target_q_mean"):
+        assert graphed.logger.name_to_value[key] == pytest.approx(eager_logged[key], rel=1e-5), key
+
+
+def test_static_sampling_respects_buffer_bounds():
+    space = gym.spaces.Box(-1, 1, (2,))
+    buffer = TensorReplayBuffer(20, space, space, optimize_memory_usage=True, handle_timeout_termination=False)
+    buffer.enable_static_sampling()
+    obs = np.zeros((1, 2), dtype=np.float32)
+    for t in range(5):
+        buffer.add(obs + t, obs + t + 1, obs, np.zeros(1), np.zeros(1), [{}])
+    buffer.refresh_static_bounds()
+    seen = th.cat([buffer.sample(256).observations[:, 0] for _ in range(20)])
+    assert set(seen.tolist()) == {0.0, 1.0, 2.0, 3.0, 4.0}  # only the 5 valid transitions, all of them
+    for t in range(5, 33):  # wraps around: full
+        buffer.add(obs + t, obs + t + 1, obs, np.zeros(1), np.zeros(1), [{}])
+    buffer.refresh_static_bounds()
+    samples = buffer.sample(4096)
+    # The slot at pos holds only a next-observation: never sampled; every other slot is.
+    valid_obs = {float(t) for t in range(13, 33)} - {float(32 - 0)}
+    got = set(samples.observations[:, 0].tolist())
+    assert got <= {float(t) for t in range(14, 33)} and len(got) == 19
+    th.testing.assert_close(samples.next_observations, samples.observations + 1)
+    del valid_obs
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(900)
+def test_bf16_learns_pendulum():
+    model = TD3X("MlpPolicy", gym.make("Pendulum-v1"), learning_starts=1_000, bf16=True, seed=0,
+                 action_noise=NormalActionNoise(np.zeros(1), 0.1 * np.ones(1)))
+    model.learn(8_000)
+    mean_return, _ = evaluate_policy(model, Monitor(gym.make("Pendulum-v1")), n_eval_episodes=10, deterministic=True)
+    print(f"bf16: mean return {mean_return:.1f}")
+    assert mean_return >= -250
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(900)
+def test_compiled_update_learns_pendulum():
+    model = TD3X("MlpPolicy", gym.make("Pendulum-v1"), learning_starts=1_000, compile_update=True, seed=1,
+                 policy_kwargs=dict(net_arch=[256, 256]), action_noise=NormalActionNoise(np.zeros(1), 0.1 * np.ones(1)))
+    model.learn(8_000)
+    mean_return, _ = evaluate_policy(model, Monitor(gym.make("Pendulum-v1")), n_eval_episodes=10, deterministic=True)
+    print(f"compile: mean return {mean_return:.1f}")
+    assert mean_return >= -250
