@@ -89,7 +89,11 @@ def _wait_for_running_trial_of(worker: subprocess.Popen, storage, study_name: st
         except KeyError:  # the study does not exist yet
             trials = []
         for t in trials:
-            if t.state == TrialState.RUNNING and t.intermediate_values and t.user_attrs.get("worker", "").endswith(f":{worker.pid}"):
+            if (
+                t.state == TrialState.RUNNING
+                and t.intermediate_values
+                and t.user_attrs.get("worker", "").endswith(f":{worker.pid}")
+            ):
                 return t.number
         time.sleep(0.2)
     raise AssertionError("timed out waiting for the worker to run a trial")
