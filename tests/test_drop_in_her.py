@@ -50,17 +50,24 @@ def test_her(model_class, image_obs_space, n_envs):
         return BitFlippingEnv(n_bits=N_BITS, continuous=True, image_obs_space=image_obs_space)
 
     env = make_vec_env(make_env, n_envs=n_envs)
-    kwargs = dict(gradient_steps=n_envs, replay_buffer_kwargs=dict(HER_KWARGS, copy_info_dict=True))
+    kwargs = dict(gradient_steps=n_envs, replay_buffer_kwargs=dict(HER_KWARGS, copy_info_dict=True), seed=0)
     if image_obs_space:
         kwargs.update(batch_size=32, buffer_size=500)
     model = her_model(model_class, env, **kwargs)
     assert isinstance(model.replay_buffer, HerReplayBuffer)
     model.learn(total_timesteps=150)
     assert model._n_updates > 0
-    # Relabelled goals: a sampled batch mixes real and virtual transitions, with rewards recomputed by the env.
-    batch = model.replay_buffer.sample(32)
+    # Real and relabelled transitions alike: the reward is the env's for the next achieved goal and the desired goal.
+    batch = model.replay_buffer.sample(64)
     assert set(batch.observations) == {"observation", "achieved_goal", "desired_goal"}
-    assert th.all((batch.rewards == 0) | (batch.rewards == -1))
+    reward_env = make_env()
+    reward_env.reset(seed=0)  # the image version needs a state to decode images
+    expected_rewards = reward_env.compute_reward(
+        batch.next_observations["achieved_goal"].cpu().numpy(), batch.observations["desired_goal"].cpu().numpy(), None
+    )
+    np.testing.assert_array_equal(batch.rewards.cpu().numpy().ravel(), expected_rewards)
+    # Relabelling reached goals: some sampled transitions succeed, which random 4-bit flipping rarely does.
+    assert (expected_rewards == 0).any()
     evaluate_policy(model, Monitor(make_env()), n_eval_episodes=2)
 
 
