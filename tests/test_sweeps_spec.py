@@ -18,10 +18,10 @@ from sb3_td3x.experiment.schemas import check_config
 from sb3_td3x.sweeps.cli import main
 from sb3_td3x.sweeps.errors import SweepSpecError
 from sb3_td3x.sweeps.launch import load_launcher
-from sb3_td3x.sweeps.objective import DEFAULT_CONFIG_DIR, check_composes, compose_config
+from sb3_td3x.sweeps.objective import DEFAULT_CONFIG_DIR, TrialObjective, check_composes, compose_config
 from sb3_td3x.sweeps.spec import load_sweep, override_value, parse_param
-from sb3_td3x.sweeps.storage import StudyStorage, mask_password
-from sb3_td3x.sweeps.worker import budget_used, claim_trial
+from sb3_td3x.sweeps.storage import StudyStorage, mask_password, open_storage
+from sb3_td3x.sweeps.worker import budget_used, claim_trial, open_study, run_worker
 
 REPO = Path(__file__).resolve().parents[1]
 SWEEP_FILES = sorted((REPO / "sweeps").glob("*.yaml"))
@@ -217,3 +217,33 @@ def test_workers_draw_different_startup_points():
     assert draws[0] != draws[1]
     with pytest.raises(SweepSpecError):
         parse_param("algo.x", {"low": 1, "high": 2, "step": 0.3, "type": "int"}, Path("f"))
+
+
+def test_report_on_a_study_that_does_not_exist_is_a_clear_error(tmp_path, capsys):
+    path = tmp_path / "ok.yaml"
+    path.write_text(VALID)
+    assert main([str(path), "--report", "--output-dir", str(tmp_path), "--quiet"]) == 2
+    assert "there is no study 't' in sqlite:///" in capsys.readouterr().err
+
+
+@pytest.mark.filterwarnings("ignore::optuna.exceptions.ExperimentalWarning")
+def test_a_journal_file_holds_a_study_to_its_budget(tmp_path):
+    """The journal storage (no database, no heartbeat) through the whole worker loop. Training is replaced by a
+    stand-in here: this test is about the storage; the real runner is in test_sweeps_pendulum.py."""
+    spec = load_sweep(REPO / "sweeps" / "pendulum_smoke.yaml")
+    journal = tmp_path / "study.log"
+    study_storage = open_storage(f"journal:{journal}", "j")
+    assert study_storage.heartbeat_interval is None
+    assert study_storage.dashboard_command() == f"optuna-dashboard {journal}"
+    study = open_study(spec, study_storage, "j", spec.overrides)
+
+    def stand_in(cfg, report):
+        report(150, -1000.0 * cfg.algo.tau)
+        return -1000.0 * cfg.algo.tau
+
+    objective = TrialObjective(spec, DEFAULT_CONFIG_DIR, [], tmp_path / "j", train_fn=stand_in)
+    assert run_worker(study, spec, study_storage, objective, n_trials=3).ran == [0, 1, 2]
+    assert (tmp_path / "study.log.sweep-lock").exists()
+    reopened = optuna.load_study(study_name="j", storage=open_storage(str(journal), "j").storage)
+    assert [t.state for t in reopened.trials] == [TrialState.COMPLETE] * 3
+    assert reopened.trials[0].user_attrs["overrides"][-1] == f"run_dir={(tmp_path / 'j' / 'trial_0000').resolve()}"

@@ -89,7 +89,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {err}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print("Interrupted before a trial started; the study is unchanged. Run the same command to continue.", file=sys.stderr)
+        print("Interrupted outside a trial; the study is consistent. Run the same command to continue.", file=sys.stderr)
         return 130
 
 
@@ -119,6 +119,8 @@ def _run(args: argparse.Namespace) -> int:
     check_composes(spec, config_dir, args.overrides)
     study_storage = open_storage(storage_url, study_name, args.heartbeat_interval, args.grace_period, args.retry_stale)
     optuna.logging.set_verbosity(optuna.logging.WARNING)  # our own log lines say what happens to each trial
+    if args.report and study_name not in optuna.get_all_study_names(study_storage.storage):
+        raise SweepError(f"there is no study {study_name!r} in {study_storage.display_url} to report on")
     study = open_study(spec, study_storage, study_name, spec.overrides + args.overrides)
 
     def finish(finished_study: optuna.Study) -> None:

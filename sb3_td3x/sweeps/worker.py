@@ -112,7 +112,10 @@ def claim_trial(study: optuna.Study, spec: SweepSpec, study_storage: StudyStorag
             return None
         # Reseed per trial: workers sharing the sampler seed would otherwise draw the same startup points.
         study.sampler = spec.make_sampler(seed_offset=len(trials))
-        return study.ask()
+        trial = study.ask()
+        if study_storage.heartbeat_interval is not None:  # a trial without any heartbeat could never go stale
+            study_storage.storage.record_heartbeat(trial._trial_id)
+        return trial
 
 
 def tell(study: optuna.Study, trial: optuna.Trial, result: TrialResult) -> None:
