@@ -1,6 +1,6 @@
 """Train TD3X on a gymnasium environment: ``python run.py algo=td3 env=ant``.
 
-With no overrides it trains TD3 on Pendulum-v1 for 15k steps (a couple of minutes on 2 CPU cores).
+With no overrides it trains TD3 on Pendulum-v1 for 10k steps (a couple of minutes on 2 CPU cores).
 Several seeds in parallel: ``python run.py -m seed=0,1,2,3,4``; continue a stopped run: ``python run.py resume=<run folder>``.
 See docs/experiments.md.
 """
