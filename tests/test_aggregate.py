@@ -30,7 +30,9 @@ def write_run(run_dir, env_id, algo, seed, returns):
     run_dir.mkdir(parents=True)
     OmegaConf.save(OmegaConf.create({"env": {"id": env_id}, "algo": {"name": algo}, "seed": seed}), run_dir / "config.yaml")
     steps = [1000 * (i + 1) for i in range(len(returns))]
-    pd.DataFrame({"timesteps": steps, "mean_return": returns, "std_return": 0.0}).to_csv(run_dir / "evaluations.csv", index=False)
+    pd.DataFrame({"timesteps": steps, "mean_return": returns, "std_return": 0.0}).to_csv(
+        run_dir / "evaluations.csv", index=False
+    )
 
 
 def test_the_command_writes_a_table_and_one_plot_per_env(tmp_path, capsys):

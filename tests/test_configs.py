@@ -106,7 +106,9 @@ def test_every_eval_video_and_debug_config_composes_and_checks(tmp_path):
             check_config(cfg)
     cfg = compose_config(["eval=default"])
     env = make_eval_env(cfg.env)
-    evaluation = PeriodicEvaluation(env, tmp_path, cfg.eval.freq, cfg.eval.n_episodes, eval_seed=cfg.seed + cfg.eval.seed_offset)
+    evaluation = PeriodicEvaluation(
+        env, tmp_path, cfg.eval.freq, cfg.eval.n_episodes, eval_seed=cfg.seed + cfg.eval.seed_offset
+    )
     assert evaluation.freq == 1000 and evaluation.n_episodes == 10
     env.close()
 
@@ -125,7 +127,9 @@ def test_overrides_reach_every_field_the_sweeps_search():
         assert OmegaConf.select(cfg, key) == value, key
 
 
-@pytest.mark.parametrize("override", ["algo.taau=0.1", "algo.batch_size=abc", "algo.net_arch=wide", "seed=1.5", "logger.tensorboard=maybe"])
+@pytest.mark.parametrize(
+    "override", ["algo.taau=0.1", "algo.batch_size=abc", "algo.net_arch=wide", "seed=1.5", "logger.tensorboard=maybe"]
+)
 def test_a_typo_or_a_wrong_type_fails_while_composing(override):
     with pytest.raises(ConfigCompositionException):
         compose_config([override])

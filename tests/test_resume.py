@@ -27,7 +27,9 @@ RUN = ["debug=smoke", "env=inverted_pendulum", "checkpoint.freq=100000", "progre
 
 
 def run_py(*args: str, **kwargs) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "run.py", *args], cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kwargs)
+    return subprocess.Popen(
+        [sys.executable, "run.py", *args], cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kwargs
+    )
 
 
 def curve(run_dir: Path) -> list[tuple[int, float, float]]:
@@ -81,7 +83,12 @@ def test_resume_takes_the_saved_config_and_plain_overrides(tmp_path):
         (tmp_path / "checkpoints" / "last" / name).write_text("{}")
     default = compose_config([f"resume={tmp_path}", "total_timesteps=5000"])  # composed with the default env and algo
     resumed = config_for_resume(default, [f"resume={tmp_path}", "total_timesteps=5000", "algo.tau=0.01"])
-    assert (resumed.env.id, resumed.algo.name, resumed.total_timesteps, resumed.algo.tau) == ("InvertedPendulum-v5", "ddpg", 5000, 0.01)
+    assert (resumed.env.id, resumed.algo.name, resumed.total_timesteps, resumed.algo.tau) == (
+        "InvertedPendulum-v5",
+        "ddpg",
+        5000,
+        0.01,
+    )
     assert resumed.run_dir == str(tmp_path)
     with pytest.raises(ConfigError, match="config group 'env'"):
         config_for_resume(default, [f"resume={tmp_path}", "env=ant"])
@@ -102,7 +109,9 @@ def test_save_checkpoint_replaces_the_previous_one_whole(tmp_path):
     from sb3_td3x.experiment.envs import make_train_env
 
     cfg = compose_config(["env=pendulum"])
-    model = TD3X("MlpPolicy", make_train_env(cfg.env, 1, 0), buffer_size=500, learning_starts=10, policy_kwargs={"net_arch": [8]})
+    model = TD3X(
+        "MlpPolicy", make_train_env(cfg.env, 1, 0), buffer_size=500, learning_starts=10, policy_kwargs={"net_arch": [8]}
+    )
     model.learn(20)
     save_checkpoint(tmp_path / "last", model, {"n": 1})
     model.learn(20, reset_num_timesteps=False)

@@ -31,7 +31,7 @@ SMOKE = ["debug=smoke", "env=inverted_pendulum", "progress_bar=false"]
 def can_render() -> bool:
     code = "import gymnasium as gym; e = gym.make('InvertedPendulum-v5', render_mode='rgb_array'); e.reset(); e.render()"
     env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
-    return subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, timeout=120).returncode == 0
+    return subprocess.run([sys.executable, "-c", code], check=False, env=env, capture_output=True, timeout=120).returncode == 0
 
 
 def read_wandb_records(path: Path) -> list:
@@ -69,7 +69,9 @@ def test_run_py_writes_a_complete_run_folder(tmp_path):
     env.update(HOME=str(home), WANDB_API_KEY=FAKE_KEY, MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"))
     args = SMOKE + ["logger=wandb", "logger.wandb.mode=offline", f"run_dir={run_dir}"]
     args += ["video=final", "video.width=64", "video.height=64"] if video else []
-    result = subprocess.run([sys.executable, "run.py", *args], cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
+    result = subprocess.run(
+        [sys.executable, "run.py", *args], check=False, cwd=REPO, env=env, capture_output=True, text=True, timeout=300
+    )
     assert result.returncode == 0, result.stderr[-3000:]
     assert "Traceback" not in result.stderr
     assert "Done: final evaluation" in result.stdout + result.stderr

@@ -20,13 +20,13 @@ import matplotlib
 
 matplotlib.use("Agg")
 
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import pandas as pd  # noqa: E402
-from omegaconf import OmegaConf  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
+import pandas as pd
+from omegaconf import OmegaConf
 
-from sb3_td3x.experiment.callbacks import EVALUATIONS_CSV  # noqa: E402
-from sb3_td3x.experiment.runner import CONFIG_FILE  # noqa: E402
+from sb3_td3x.experiment.callbacks import EVALUATIONS_CSV
+from sb3_td3x.experiment.runner import CONFIG_FILE
 
 
 def iqm(values: np.ndarray, axis: int = -1) -> np.ndarray:
@@ -150,7 +150,9 @@ def main(argv: list[str] | None = None) -> int:
 
 def to_markdown(table: pd.DataFrame) -> str:
     """A Markdown table, floats with one decimal (pandas' own ``to_markdown`` needs the tabulate package)."""
-    cells = [[f"{value:.1f}" if isinstance(value, float) else str(value) for value in row] for row in table.itertuples(index=False)]
+    cells = [
+        [f"{value:.1f}" if isinstance(value, float) else str(value) for value in row] for row in table.itertuples(index=False)
+    ]
     lines = ["| " + " | ".join(table.columns) + " |", "|" + "---|" * len(table.columns)]
     return "\n".join(lines + ["| " + " | ".join(row) + " |" for row in cells])
 

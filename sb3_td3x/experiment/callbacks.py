@@ -97,7 +97,11 @@ class PeriodicEvaluation(BaseCallback):
         sync_envs_normalization(self.training_env, self.eval_env)
         self.eval_env.seed(self.eval_seed)
         returns, lengths = evaluate_policy(
-            self.model, self.eval_env, n_eval_episodes=self.n_episodes, deterministic=self.deterministic, return_episode_rewards=True
+            self.model,
+            self.eval_env,
+            n_eval_episodes=self.n_episodes,
+            deterministic=self.deterministic,
+            return_episode_rewards=True,
         )
         result = {
             "timesteps": self.num_timesteps,
@@ -211,7 +215,12 @@ class ProgressBar(BaseCallback):
 
     def _on_training_start(self) -> None:
         self.bar = tqdm(
-            total=self.total_timesteps, initial=self.num_timesteps, desc=self.description, unit="step", dynamic_ncols=True, mininterval=0.5
+            total=self.total_timesteps,
+            initial=self.num_timesteps,
+            desc=self.description,
+            unit="step",
+            dynamic_ncols=True,
+            mininterval=0.5,
         )
 
     def _on_step(self) -> bool:
@@ -221,7 +230,9 @@ class ProgressBar(BaseCallback):
 
     def on_evaluation(self, result: dict[str, float]) -> None:
         if self.bar is not None:
-            self.bar.set_postfix_str(f"eval {result['mean_return']:.1f} ± {result['std_return']:.1f} @ {int(result['timesteps'])}")
+            self.bar.set_postfix_str(
+                f"eval {result['mean_return']:.1f} ± {result['std_return']:.1f} @ {int(result['timesteps'])}"
+            )
 
     def close(self) -> None:
         if self.bar is not None:

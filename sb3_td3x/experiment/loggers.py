@@ -67,7 +67,9 @@ def start_wandb(wandb_cfg: DictConfig, run_dir: Path, run_name: str, config: dic
     import wandb  # imported here: it takes a second, and only W&B runs need it
 
     id_file = run_dir / WANDB_ID_FILE
-    run_id = id_file.read_text().strip() if id_file.is_file() else uuid.uuid4().hex[:8]  # os.urandom: leaves the seeded generators alone
+    run_id = (
+        id_file.read_text().strip() if id_file.is_file() else uuid.uuid4().hex[:8]
+    )  # os.urandom: leaves the seeded generators alone
     id_file.write_text(run_id)
     return wandb.init(
         project=wandb_cfg.project,

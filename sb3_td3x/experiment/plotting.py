@@ -8,11 +8,11 @@ import matplotlib
 
 matplotlib.use("Agg")  # no display needed; set before pyplot is imported
 
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-from omegaconf import DictConfig  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
+from omegaconf import DictConfig
 
-from sb3_td3x.experiment.envs import make_render_env  # noqa: E402
+from sb3_td3x.experiment.envs import make_render_env
 
 LEARNING_CURVE_PNG = "learning_curve.png"
 

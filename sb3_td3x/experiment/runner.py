@@ -146,7 +146,9 @@ def run_experiment(cfg: DictConfig, report: Callable[[int, float], None] | None 
         }
         (run_dir / SUMMARY_FILE).write_text(json.dumps(summary, indent=2))
         if cfg.video is not None:
-            path = record_video(model, cfg.env, cfg.video, run_dir / f"video.{cfg.video.format}", cfg.seed + cfg.eval.seed_offset)
+            path = record_video(
+                model, cfg.env, cfg.video, run_dir / f"video.{cfg.video.format}", cfg.seed + cfg.eval.seed_offset
+            )
             log.info("Video of the final policy: %s", path)
         log.info(
             "Done: final evaluation %.2f ± %.2f at step %d (best %.2f). Run folder: %s",
@@ -165,7 +167,9 @@ def run_experiment(cfg: DictConfig, report: Callable[[int, float], None] | None 
             except Exception as error:  # a failing close must not hide the exception that ended the run
                 log.warning("Closing %s failed: %s", close, error)
         if evaluation is not None and evaluation.history:
-            plot_learning_curve(evaluation.history, run_dir / LEARNING_CURVE_PNG, f"{cfg.algo.name} on {cfg.env.id}, seed {cfg.seed}")
+            plot_learning_curve(
+                evaluation.history, run_dir / LEARNING_CURVE_PNG, f"{cfg.algo.name} on {cfg.env.id}, seed {cfg.seed}"
+            )
 
 
 def _reporting(report: Callable[[int, float], None], checkpointer: Checkpointer) -> Callable[[dict[str, float]], None]:

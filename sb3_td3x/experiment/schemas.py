@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import difflib
 import re
-from pathlib import Path
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
@@ -22,7 +22,6 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import II, MISSING, DictConfig, OmegaConf
 
 from sb3_td3x.experiment.errors import ConfigError
-
 
 # conf/ of a source checkout (run.py's config_path).
 CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
@@ -199,14 +198,22 @@ def check_config(cfg: DictConfig) -> None:
     need(0 < algo.tau <= 1, f"algo.tau={algo.tau} must be in (0, 1] (the paper uses 0.005)")
     need(0 <= algo.gamma <= 1, f"algo.gamma={algo.gamma} must be in [0, 1] (the paper uses 0.99)")
     need(algo.train_freq >= 1, f"algo.train_freq={algo.train_freq} must be >= 1")
-    need(algo.train_freq_unit in ("step", "episode"), f"algo.train_freq_unit={algo.train_freq_unit!r} must be 'step' or 'episode'")
-    need(algo.gradient_steps >= 1 or algo.gradient_steps == -1, f"algo.gradient_steps={algo.gradient_steps} must be >= 1 or -1")
+    need(
+        algo.train_freq_unit in ("step", "episode"),
+        f"algo.train_freq_unit={algo.train_freq_unit!r} must be 'step' or 'episode'",
+    )
+    need(
+        algo.gradient_steps >= 1 or algo.gradient_steps == -1, f"algo.gradient_steps={algo.gradient_steps} must be >= 1 or -1"
+    )
     need(algo.n_steps >= 1, f"algo.n_steps={algo.n_steps} must be >= 1")
     need(algo.policy_delay >= 1, f"algo.policy_delay={algo.policy_delay} must be >= 1")
     need(algo.target_policy_noise >= 0, f"algo.target_policy_noise={algo.target_policy_noise} must be >= 0")
     need(algo.target_noise_clip >= 0, f"algo.target_noise_clip={algo.target_noise_clip} must be >= 0")
     need(algo.exploration_noise >= 0, f"algo.exploration_noise={algo.exploration_noise} must be >= 0")
-    need(len(algo.net_arch) > 0 and min(algo.net_arch) >= 1, f"algo.net_arch={list(algo.net_arch)} must list positive layer widths")
+    need(
+        len(algo.net_arch) > 0 and min(algo.net_arch) >= 1,
+        f"algo.net_arch={list(algo.net_arch)} must list positive layer widths",
+    )
     need(algo.n_critics >= 1, f"algo.n_critics={algo.n_critics} must be >= 1")
 
     problems += _env_id_problems(cfg.env.id)
@@ -216,7 +223,10 @@ def check_config(cfg: DictConfig) -> None:
     need(cfg.checkpoint.freq >= 1, f"checkpoint.freq={cfg.checkpoint.freq} must be >= 1 environment step")
     if cfg.logger.wandb is not None:
         mode = cfg.logger.wandb.mode
-        need(mode in ("auto", "online", "offline", "disabled"), f"logger.wandb.mode={mode!r} must be auto, online, offline or disabled")
+        need(
+            mode in ("auto", "online", "offline", "disabled"),
+            f"logger.wandb.mode={mode!r} must be auto, online, offline or disabled",
+        )
     if cfg.video is not None:
         need(cfg.video.format in ("gif", "mp4"), f"video.format={cfg.video.format!r} must be 'gif' or 'mp4'")
         need(cfg.video.n_episodes >= 1, f"video.n_episodes={cfg.video.n_episodes} must be >= 1")
