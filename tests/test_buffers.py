@@ -130,3 +130,18 @@ def test_td3x_learn_with_optimize_memory_usage():
                  replay_buffer_kwargs=dict(handle_timeout_termination=False), policy_kwargs=dict(net_arch=[16]), seed=0)
     assert model.replay_buffer.next_observations is None
     model.learn(150)
+
+
+@pytest.mark.parametrize("n_envs,optimize_memory_usage", [(1, False), (2, False), (1, True)])
+def test_seeded_sample_equals_sb3_sample(n_envs, optimize_memory_usage):
+    kwargs = dict(n_envs=n_envs, optimize_memory_usage=optimize_memory_usage,
+                  handle_timeout_termination=not optimize_memory_usage)
+    ref = ReplayBuffer(40, OBS, ACT, device="cpu", **kwargs)
+    buf = TensorReplayBuffer(40, OBS, ACT, device="cpu", **kwargs)
+    fill([ref, buf], n_steps=30, n_envs=n_envs)
+    np.random.seed(5)
+    expected = ref.sample(16)
+    np.random.seed(5)
+    got = buf.sample(16)
+    for name in ("observations", "actions", "next_observations", "dones", "rewards"):
+        th.testing.assert_close(getattr(got, name), getattr(expected, name).float(), msg=name)

@@ -73,7 +73,6 @@ def test_ddpg_accepts_sb3_ddpg_arguments():
     assert model.clipped_double_q is False
 
 
-@pytest.mark.xfail(strict=True, raises=TypeError, reason="departure from SB3: DDPG(policy, env, **kwargs) is keyword-only")
 def test_ddpg_positional_arguments():
     model = DDPG("MlpPolicy", "Pendulum-v1", 3e-4, 1_000)
     assert model.learning_rate == 3e-4 and model.buffer_size == 1_000

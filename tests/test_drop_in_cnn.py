@@ -36,8 +36,6 @@ def check_target_features_extractors(model: TD3X, shared: bool) -> None:
 
 
 # mirrors SB3 tests/test_cnn.py::test_cnn
-# Strict xfail markers below: known TD3X bugs reported to the lead; each marker goes once its bug is fixed.
-@pytest.mark.xfail(strict=True, raises=AttributeError, reason="TD3X bug: TD3X.load(path) without env reads None.action_space")
 def test_cnn(tmp_path):
     env = FakeImageEnv(screen_height=40, screen_width=40, n_channels=1, discrete=False)
     model = TD3X("CnnPolicy", env, learning_starts=100, seed=1, **CNN_KWARGS).learn(120)
@@ -60,20 +58,8 @@ def test_cnn(tmp_path):
 @pytest.mark.parametrize(
     "share_features_extractor",
     [
-        pytest.param(
-            True,
-            marks=pytest.mark.xfail(
-                strict=True,
-                reason="TD3X bugs: actor_loss freezes the shared features extractor, so nothing trains it; "
-                "and the critics keep the lr_schedule of _setup_model",
-            ),
-        ),
-        pytest.param(
-            False,
-            marks=pytest.mark.xfail(
-                strict=True, reason="TD3X bug: the critics keep the lr_schedule of _setup_model, not model.lr_schedule"
-            ),
-        ),
+        True,
+        False,
     ],
 )
 def test_features_extractor_target_net(share_features_extractor):

@@ -23,13 +23,6 @@ from stable_baselines3.common.vec_env import DummyVecEnv
 
 from sb3_td3x import DDPG, TD3X
 
-# Known TD3X bug, reported to the lead: SB3's load() builds the model with env=None, and TD3X.__init__ reads
-# env.action_space. Strict, so the marker has to go once the bug is fixed.
-LOAD_WITHOUT_ENV_BUG = pytest.mark.xfail(
-    strict=True, raises=AttributeError, reason="TD3X bug: TD3X.load(path) without env reads None.action_space"
-)
-
-
 def identity_env() -> IdentityEnvBox:
     return IdentityEnvBox(-10, 10)
 
@@ -155,7 +148,6 @@ def test_set_env(tmp_path, model_class):
 
 
 # mirrors SB3 tests/test_save_load.py::test_exclude_include_saved_params
-@LOAD_WITHOUT_ENV_BUG
 @pytest.mark.parametrize("model_class", [TD3X, DDPG])
 def test_exclude_include_saved_params(tmp_path, model_class):
     env = DummyVecEnv([identity_env])
@@ -301,7 +293,6 @@ def test_save_load_policy(tmp_path, model_class, policy_str):
 
 
 # mirrors SB3 tests/test_save_load.py::test_no_resource_warning (the replay buffer part; SB3 uses SAC)
-@LOAD_WITHOUT_ENV_BUG
 @pytest.mark.filterwarnings("error")
 def test_no_resource_warning(tmp_path):
     TD3X("MlpPolicy", "Pendulum-v1", buffer_size=200).save(tmp_path / "td3x_pendulum")
@@ -325,7 +316,6 @@ def test_no_resource_warning(tmp_path):
 
 
 # mirrors SB3 tests/test_save_load.py::test_cast_lr_schedule, for both of TD3X's schedules
-@LOAD_WITHOUT_ENV_BUG
 def test_cast_lr_schedule(tmp_path):
     model = TD3X(
         "MlpPolicy",

@@ -28,15 +28,7 @@ class HParamCallback(BaseCallback):
     "model_class,log_name",
     [
         (TD3X, "TD3X"),
-        pytest.param(
-            DDPG,
-            "DDPG",
-            marks=pytest.mark.xfail(
-                strict=True,
-                raises=AssertionError,
-                reason="departure from SB3: DDPG inherits TD3X.learn, so its runs log under TD3X_<n>",
-            ),
-        ),
+        (DDPG, "DDPG"),
     ],
 )
 def test_tensorboard(tmp_path, model_class, log_name):

@@ -295,8 +295,7 @@ def test_separate_critic_learning_rate():
     assert model.critic.optimizer.param_groups[0]["lr"] == pytest.approx(3e-4)
     feed(model, [make_batch()])
     model._current_progress_remaining = 0.5
-    model.critic_learning_rate = lambda progress: 1e-4 * progress
-    model.critic_lr_schedule = model.critic_learning_rate
+    model.critic_lr_schedule = lambda progress: 1e-4 * progress
     model.train(gradient_steps=1, batch_size=BATCH)
     assert model.critic.optimizer.param_groups[0]["lr"] == pytest.approx(5e-5)
     assert model.actor.optimizer.param_groups[0]["lr"] == pytest.approx(1e-3)

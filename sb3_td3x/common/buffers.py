@@ -119,7 +119,7 @@ class TensorReplayBuffer(ReplayBuffer):
             views["rewards"][pos] = np.reshape(reward, self.n_envs)
             views["dones"][pos] = np.reshape(done, self.n_envs)
             if timeouts is not None:
-                views["timeouts"][pos] = timeouts
+                views["timeouts"][pos] = np.asarray(timeouts, dtype=np.float32).reshape(self.n_envs)
         else:
 
             def put(tensor: th.Tensor, index: int, value: Any) -> None:
@@ -175,26 +175,33 @@ class TensorReplayBuffer(ReplayBuffer):
         return "_static_span" in self.__dict__
 
     def sample(self, batch_size: int, env: VecNormalize | None = None) -> ReplayBufferSamples:
-        """Uniform sample of ``batch_size`` transitions, drawn with torch's generator on the storage device."""
-        device = self._device
+        """Uniform sample of ``batch_size`` transitions.
+
+        Indices are drawn with numpy's global generator exactly as SB3's ``ReplayBuffer`` draws them (same calls, same
+        order), so a seeded run samples the same transitions as SB3, and as SB3's Dict buffer for Dict observations;
+        the gather itself happens on the storage device. With static sampling (CUDA graphs) they are drawn on the device.
+        """
         if self.static_sampling:
-            u = th.rand(batch_size, device=device)
+            u = th.rand(batch_size, device=self._device)
             steps = th.minimum((u * self._static_span).long(), self._static_span.long() - 1)
             batch_inds = (self._static_offset + steps) % self.buffer_size
-        elif self.optimize_memory_usage:
-            # Index ``pos`` holds the newest next-observation, not a valid transition: skip it (as SB3 does).
-            if self.full:
-                batch_inds = (th.randint(1, self.buffer_size, (batch_size,), device=device) + self.pos) % self.buffer_size
-            else:
-                batch_inds = th.randint(0, self.pos, (batch_size,), device=device)
-        else:
+            env_inds = th.randint(0, self.n_envs, (batch_size,), device=self._device)
+            return self._gather(batch_inds, env_inds, env)
+        if not self.optimize_memory_usage:
             upper_bound = self.buffer_size if self.full else self.pos
-            batch_inds = th.randint(0, upper_bound, (batch_size,), device=device)
-        return self._get_samples(batch_inds, env=env)
+            np_inds = np.random.randint(0, upper_bound, size=batch_size)
+        elif self.full:
+            # Index ``pos`` holds the newest next-observation, not a valid transition: skip it (as SB3 does).
+            np_inds = (np.random.randint(1, self.buffer_size, size=batch_size) + self.pos) % self.buffer_size
+        else:
+            np_inds = np.random.randint(0, self.pos, size=batch_size)
+        return self._get_samples(np_inds, env=env)
 
-    def _get_samples(self, batch_inds: th.Tensor | np.ndarray, env: VecNormalize | None = None) -> ReplayBufferSamples:
-        batch_inds = th.as_tensor(batch_inds, device=self._device)
-        env_inds = th.randint(0, self.n_envs, batch_inds.shape, device=self._device) if self.n_envs > 1 else 0
+    def _get_samples(self, batch_inds: np.ndarray | th.Tensor, env: VecNormalize | None = None) -> ReplayBufferSamples:
+        env_inds = np.random.randint(0, high=self.n_envs, size=(len(batch_inds),))
+        return self._gather(th.as_tensor(batch_inds, device=self._device), th.as_tensor(env_inds, device=self._device), env)
+
+    def _gather(self, batch_inds: th.Tensor, env_inds: th.Tensor, env: VecNormalize | None) -> ReplayBufferSamples:
         if self.optimize_memory_usage:
             next_obs = self.observations[(batch_inds + 1) % self.buffer_size, env_inds]
         else:

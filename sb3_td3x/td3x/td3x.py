@@ -27,12 +27,12 @@ Obs = th.Tensor | TensorDict
 
 
 @contextmanager
-def frozen(module: th.nn.Module) -> Iterator[None]:
-    """Temporarily switch off ``requires_grad`` on every parameter of ``module``.
+def frozen(parameters: list[th.nn.Parameter]) -> Iterator[None]:
+    """Temporarily switch off ``requires_grad`` on ``parameters``.
 
     Used by the actor loss so that back-propagating ``-Q_1(s, pi(s))`` leaves the critic without gradient.
     """
-    params = [p for p in module.parameters() if p.requires_grad]
+    params = [p for p in parameters if p.requires_grad]
     for p in params:
         p.requires_grad_(False)
     try:
@@ -176,7 +176,7 @@ class TD3X(OffPolicyAlgorithm):
             target_policy_noise=target_policy_noise,
             target_noise_clip=target_noise_clip,
         )
-        if not isinstance(env, str):
+        if env is not None and not isinstance(env, str):  # None when loading a saved model without env
             self._check_action_space(env.action_space)
         try:
             super().__init__(
@@ -211,7 +211,8 @@ class TD3X(OffPolicyAlgorithm):
             if getattr(self, "action_space", None) is not None:
                 self._check_action_space(self.action_space)
             raise
-        self._check_action_space(self.action_space)
+        if getattr(self, "action_space", None) is not None:  # unset while loading a saved model without env
+            self._check_action_space(self.action_space)
 
         self.policy_delay = policy_delay
         self.target_noise_clip = target_noise_clip
@@ -310,11 +311,19 @@ class TD3X(OffPolicyAlgorithm):
                 )
             self.replay_buffer.enable_static_sampling()
         self._step_fn: Any = None
-        self.critic_lr_schedule = (
-            self.lr_schedule if self.critic_learning_rate is None else FloatSchedule(self.critic_learning_rate)
-        )
         self._create_aliases()
+        self._critic_lr_schedule = None if self.critic_learning_rate is None else FloatSchedule(self.critic_learning_rate)
         update_learning_rate(self.critic.optimizer, self.critic_lr_schedule(1))
+
+    @property
+    def critic_lr_schedule(self) -> Schedule:
+        """The critics' learning-rate schedule: ``critic_learning_rate``'s, or the actor's when it is None."""
+        schedule = self.__dict__.get("_critic_lr_schedule")
+        return self.lr_schedule if schedule is None else schedule
+
+    @critic_lr_schedule.setter
+    def critic_lr_schedule(self, schedule: Schedule | None) -> None:
+        self._critic_lr_schedule = schedule
 
     def _create_aliases(self) -> None:
         self.actor = self.policy.actor
@@ -328,6 +337,8 @@ class TD3X(OffPolicyAlgorithm):
         self._actor_params = list(self.actor.parameters())
         self._actor_target_params = list(self.actor_target.parameters())
         self._critic_params = list(self.critic.parameters())
+        actor_param_ids = {id(p) for p in self._actor_params}
+        self._critic_only_params = [p for p in self._critic_params if id(p) not in actor_param_ids]
         self._critic_target_params = list(self.critic_target.parameters())
         self._actor_batch_norm_stats = get_parameters_by_name(self.actor, ["running_"])
         self._actor_batch_norm_stats_target = get_parameters_by_name(self.actor_target, ["running_"])
@@ -478,9 +489,10 @@ class TD3X(OffPolicyAlgorithm):
     def actor_loss(self, observations: Obs) -> tuple[th.Tensor, dict[str, th.Tensor]]:
         """Step 13: J(phi) = -mean Q_1(s, pi_phi(s)) (deterministic policy gradient, paper eq. 6).
 
-        The critic is frozen while the loss is built, so back-propagating it leaves the critic without gradient.
+        The critic is frozen while the loss is built, so back-propagating it leaves the critic without gradient
+        (a features extractor shared with the actor, ``share_features_extractor=True``, is the actor's and trains).
         """
-        with frozen(self.critic):
+        with frozen(self._critic_only_params):
             loss = -self.critic.q1_forward(observations, self.actor(observations)).float().mean()
         return loss, {"actor_loss": loss.detach()}
 
@@ -526,7 +538,8 @@ class TD3X(OffPolicyAlgorithm):
             return super()._sample_action(learning_starts, action_noise, n_envs)
         with th.no_grad():
             obs = th.as_tensor(self._last_obs, device=self.device).reshape(n_envs, *self.observation_space.shape)
-            scaled_action = self.actor(obs).cpu().numpy()  # (n_envs, action_dim), in [-1, 1]
+            # (n_envs, *action_shape), in [-1, 1]
+            scaled_action = self.actor(obs).cpu().numpy().reshape((n_envs, *self.action_space.shape))
         if action_noise is not None:
             scaled_action = np.clip(scaled_action + action_noise(), -1, 1)
         return self.policy.unscale_action(scaled_action), scaled_action
@@ -564,12 +577,14 @@ class TD3X(OffPolicyAlgorithm):
         """The actor follows ``learning_rate``; the critics follow ``critic_learning_rate`` when it is set."""
         progress = self._current_progress_remaining
         self.logger.record("train/learning_rate", self.lr_schedule(progress))
-        if self.critic_learning_rate is not None:
-            self.logger.record("train/critic_learning_rate", self.critic_lr_schedule(progress))
+        # Read at each call, so that a schedule replaced after construction is followed (as SB3 does).
+        critic_schedule = self.critic_lr_schedule
+        if critic_schedule is not self.lr_schedule:
+            self.logger.record("train/critic_learning_rate", critic_schedule(progress))
         if not isinstance(optimizers, list):
             optimizers = [optimizers]
         for optimizer in optimizers:
-            schedule = self.critic_lr_schedule if optimizer is self.critic.optimizer else self.lr_schedule
+            schedule = critic_schedule if optimizer is self.critic.optimizer else self.lr_schedule
             update_learning_rate(optimizer, schedule(progress))
 
     def _log_train_infos(self, critic_infos: list[dict[str, th.Tensor]], actor_infos: list[dict[str, th.Tensor]]) -> None:
@@ -610,11 +625,12 @@ class TD3X(OffPolicyAlgorithm):
             "critic",
             "actor_target",
             "critic_target",
-            "critic_lr_schedule",
+            "_critic_lr_schedule",
             "_step_fn",
             "_actor_params",
             "_actor_target_params",
             "_critic_params",
+            "_critic_only_params",
             "_critic_target_params",
             "_actor_batch_norm_stats",
             "_actor_batch_norm_stats_target",
