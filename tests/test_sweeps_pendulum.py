@@ -198,32 +198,16 @@ def _wait_until(condition, proc: subprocess.Popen, timeout: float) -> None:
 
 
 @pytest.mark.slow
-def test_workers_launched_as_submitit_jobs_share_the_study(tmp_path):
+def test_workers_launched_as_submitit_jobs_share_the_study(tmp_path, capsys):
     """The cluster path (``--launcher``) on this machine: submitit's local executor, configured like Hydra's
     submitit launcher, starts two worker jobs that together run exactly the budget of trials."""
     out = tmp_path / "runs"
-    result = subprocess.run(
-        sweep_command(
-            "--output-dir",
-            str(out),
-            "--n-trials",
-            "2",
-            "--launcher",
-            str(REPO / "sweeps/launcher/local.yaml"),
-            "--workers",
-            "2",
-            "--wait",
-        ),
-        check=False,
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=300,
-        env=_env(),
-    )
-    assert result.returncode == 0, result.stderr
-    assert "submitted 2 local worker job(s)" in result.stdout and "workers exited with [0, 0]" in result.stdout
+    launcher = str(REPO / "sweeps" / "launcher" / "local.yaml")
+    code = main([str(SMOKE), "--output-dir", str(out), "--n-trials", "2", "--launcher", launcher, "--workers", "2", "--wait"])
+    stdout = capsys.readouterr().out
+    assert code == 0, stdout
+    assert "submitted 2 local worker job(s)" in stdout and "workers exited with [0, 0]" in stdout
     trials = load(f"sqlite:///{out / STUDY / 'optuna.db'}")
     assert [t.number for t in trials] == [0, 1] and all(t.state in FINISHED for t in trials)
-    assert all(t.user_attrs["worker"] for t in trials)
     assert (out / STUDY / "summary.txt").is_file()
+    assert len(list((out / STUDY / "jobs").glob("*/*_log.err"))) == 2

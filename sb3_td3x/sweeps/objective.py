@@ -62,11 +62,11 @@ def check_composes(spec: SweepSpec, config_dir: Path, extra_overrides: list[str]
     try:
         fixed_keys = {override_key(o).lstrip("+~") for o in fixed}
     except OverrideParseException as err:
-        raise SweepSpecError(f"{spec.source}: an override is not in Hydra's syntax: {err}") from None
+        raise SweepSpecError(f"an override of {spec.source} or of the command line is not in Hydra's syntax: {err}") from None
     clash = sorted(fixed_keys & set(spec.searched_paths))
     if clash:
         raise SweepSpecError(
-            f"{spec.source}: {', '.join(clash)} is both searched (search_space) and fixed (overrides); remove one of the two"
+            f"{spec.source}: {', '.join(clash)} is both searched (search_space) and fixed (the overrides of the file or the command line); remove one of the two"
         )
     for reserved in ("seed", "run_dir"):
         if reserved in spec.searched_paths or reserved in fixed_keys:
@@ -94,6 +94,7 @@ class TrialResult:
     value: float | None = None
     reason: str | None = None  #: why a trial was pruned or failed; stored as the trial's ``fail_reason``
     interrupted: bool = False  #: stopped by Ctrl-C / SIGTERM: the worker re-queues the trial and stops
+    crashed: bool = False  #: raised an error other than divergence: its traceback is in the trial folder
 
 
 class TrialObjective:
@@ -173,7 +174,7 @@ class TrialObjective:
         except Exception as err:  # noqa: BLE001  (any crash in one trial is recorded on it; the study goes on)
             self._write_traceback(run_dir)
             first_line = (str(err).strip().splitlines() or [""])[0]
-            return TrialResult(optuna.trial.TrialState.FAIL, reason=f"{type(err).__name__}: {first_line}")
+            return TrialResult(optuna.trial.TrialState.FAIL, reason=f"{type(err).__name__}: {first_line}", crashed=True)
 
         value = max(evaluations) if self.spec.metric == "eval/best_mean_return" and evaluations else final_return
         if value is None or not math.isfinite(value):

@@ -176,7 +176,7 @@ def run_worker(
         if result.interrupted:
             requeue(study, trial.number)
             raise SweepInterrupted(trial.number)
-        if result.state == TrialState.FAIL and not (result.reason or "").startswith("diverged"):
+        if result.crashed:
             crashes.append(f"trial {trial.number}: {result.reason} (see {objective.run_dir(trial.number)}/sweep_error.txt)")
             if len(crashes) >= max_consecutive_failures:
                 raise SweepError(
