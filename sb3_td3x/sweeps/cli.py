@@ -6,6 +6,7 @@ import argparse
 import logging
 import signal
 import sys
+import threading
 from pathlib import Path
 
 from sb3_td3x.sweeps.errors import SweepError
@@ -113,10 +114,10 @@ def _run(args: argparse.Namespace) -> int:
         raise SweepError(f"{config_dir} has no config.yaml; pass --config-dir pointing at the conf/ folder run.py uses")
     storage_url = args.storage or spec.storage or default_storage_url(study_dir)
 
-    if args.launcher is not None:
-        return _launch(args, storage_url, study_dir, study_name)
-
     check_composes(spec, config_dir, args.overrides)
+    if args.launcher is not None:
+        return _launch(args, storage_url, study_dir, study_name, config_dir)
+
     study_storage = open_storage(storage_url, study_name, args.heartbeat_interval, args.grace_period, args.retry_stale)
     optuna.logging.set_verbosity(optuna.logging.WARNING)  # our own log lines say what happens to each trial
     if args.report and study_name not in optuna.get_all_study_names(study_storage.storage):
@@ -140,7 +141,8 @@ def _run(args: argparse.Namespace) -> int:
     logger.info(
         "study %s in %s: %d trials wanted, %d there", study_name, study_storage.display_url, n_trials, len(study.trials)
     )
-    previous = signal.signal(signal.SIGTERM, _raise_keyboard_interrupt)  # scancel / preemption: stop like Ctrl-C
+    in_main_thread = threading.current_thread() is threading.main_thread()  # only there can signals be caught
+    previous = signal.signal(signal.SIGTERM, _raise_keyboard_interrupt) if in_main_thread else None  # scancel: like Ctrl-C
     try:
         summary = run_worker(
             study,
@@ -155,40 +157,46 @@ def _run(args: argparse.Namespace) -> int:
         print(str(err), file=sys.stderr)
         return 130
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        if in_main_thread:
+            signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
     if not summary.ran:
         logger.info("study %s already holds its %d trials; pass a larger --n-trials to grow it", study_name, n_trials)
     return 0
 
 
-def _launch(args: argparse.Namespace, storage_url: str, study_dir: Path, study_name: str) -> int:
+def _launch(args: argparse.Namespace, storage_url: str, study_dir: Path, study_name: str, config_dir: Path) -> int:
     from sb3_td3x.sweeps.launch import load_launcher, submit_workers
     from sb3_td3x.sweeps.storage import open_storage
 
     if args.workers < 1:
         raise SweepError(f"--workers must be at least 1, got {args.workers}")
-    open_storage(
-        storage_url, study_name, args.heartbeat_interval, args.grace_period, args.retry_stale
-    )  # fail here, not in N jobs
+    # An unreachable storage fails here, once, rather than in every job.
+    open_storage(storage_url, study_name, args.heartbeat_interval, args.grace_period, args.retry_stale)
     cluster, executor_params = load_launcher(args.launcher, study_dir / "jobs", f"sweep-{study_name}")
     if storage_url.startswith("sqlite") and cluster == "slurm":
         logger.warning(
             "SQLite on a cluster's shared file system is fragile with many workers; prefer --storage postgresql://..."
         )
-    worker_argv = _worker_argv(args, storage_url, study_dir)
+    worker_argv = _worker_argv(args, storage_url, study_dir, config_dir)
     jobs = submit_workers(cluster, executor_params, args.workers, main, worker_argv)
     print(f"submitted {len(jobs)} {cluster} worker job(s): {', '.join(str(job.job_id) for job in jobs)}")
     print(f"job logs: {study_dir / 'jobs'}; the last worker writes the results into {study_dir}")
     if not args.wait:
         return 0
-    codes = [job.result() for job in jobs]
+    codes = []
+    for job in jobs:
+        try:
+            codes.append(job.result())
+        except Exception as err:  # noqa: BLE001  (submitit's FailedJobError, UncompletedJobError: the job's log says why)
+            raise SweepError(
+                f"worker job {job.job_id} failed: {str(err).strip().splitlines()[0]}; see {study_dir / 'jobs'}"
+            ) from None
     print(f"workers exited with {codes}")
     return max(codes)
 
 
-def _worker_argv(args: argparse.Namespace, storage_url: str, study_dir: Path) -> list[str]:
+def _worker_argv(args: argparse.Namespace, storage_url: str, study_dir: Path, config_dir: Path) -> list[str]:
     """The command line each job runs: this one, less the launcher options, with absolute paths on every node."""
-    config_dir = (args.config_dir or Path(__file__).resolve().parents[2] / "conf").resolve()
     if storage_url.startswith("sqlite:///") and not storage_url.startswith("sqlite:////"):
         storage_url = f"sqlite:///{Path(storage_url.removeprefix('sqlite:///')).resolve()}"
     worker_argv = [
