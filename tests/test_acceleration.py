@@ -145,3 +145,15 @@ def test_compiled_update_learns_pendulum():
     mean_return, _ = evaluate_policy(model, Monitor(gym.make("Pendulum-v1")), n_eval_episodes=10, deterministic=True)
     print(f"compile: mean return {mean_return:.1f}")
     assert mean_return >= -250
+
+
+def test_gpu_trained_model_loads_on_cpu_without_graphs(tmp_path):
+    """A model saved with cuda_graph=True (a GPU run) loads on a CPU machine and trains eagerly, with a warning."""
+    model = small()
+    model.cuda_graph = True  # as saved by a GPU run
+    model.save(tmp_path / "gpu_model")
+    with pytest.warns(UserWarning, match="cuda_graph=True needs a CUDA device"):
+        loaded = TD3X.load(tmp_path / "gpu_model", env="Pendulum-v1", device="cpu")
+    assert loaded.cuda_graph is False
+    assert "capturable" not in loaded.policy_kwargs.get("optimizer_kwargs", {})
+    loaded.learn(150)

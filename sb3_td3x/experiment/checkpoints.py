@@ -3,7 +3,7 @@
 A checkpoint is a folder (``<run_dir>/checkpoints/last`` or ``.../best``) holding
 
 - ``model.zip``: SB3's save (networks, optimizers, step counters, the observation that starts the next step),
-- ``replay_buffer.pkl``: SB3's replay buffer save,
+- ``replay_buffer.pkl``: SB3's replay buffer save, of the filled rows only,
 - ``vecnormalize.pkl``: the ``VecNormalize`` statistics, when observations or rewards are normalised,
 - ``state.pkl``: what SB3's save leaves out and an exact continuation needs: the random number generators
   (python, numpy, torch, the action space's sampler), the state of every training environment *within* its
@@ -31,6 +31,7 @@ from typing import Any
 import mujoco
 import numpy as np
 import torch
+from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecNormalize
 
 from sb3_td3x import TD3X
@@ -64,8 +65,9 @@ def save_checkpoint(target: Path, model: TD3X, experiment_state: dict[str, Any],
 
     files = [MODEL_FILE, STATE_FILE]
     model.save(tmp / MODEL_FILE)
+    buffer_arrays: list[str] = []
     if replay_buffer:
-        model.save_replay_buffer(tmp / REPLAY_BUFFER_FILE)
+        buffer_arrays = _save_filled_replay_buffer(model, tmp / REPLAY_BUFFER_FILE)
         files.append(REPLAY_BUFFER_FILE)
     vec_normalize = model.get_vec_normalize_env()
     if vec_normalize is not None:
@@ -75,6 +77,7 @@ def save_checkpoint(target: Path, model: TD3X, experiment_state: dict[str, Any],
         "rng": _rng_state(model),
         "env": _capture_env_state(model.get_env()),
         "vecnormalize_returns": None if vec_normalize is None else vec_normalize.returns.copy(),
+        "replay_buffer_arrays": buffer_arrays,
         "experiment": experiment_state,
     }
     with open(tmp / STATE_FILE, "wb") as file:
@@ -136,8 +139,61 @@ def load_checkpoint(path: Path, cls: type[TD3X], env: VecEnv, device: str) -> tu
     # there is none, so the restored episodes go on.
     model = cls.load(path / MODEL_FILE, env=env, device=device, force_reset=not resumes_episode)
     model.load_replay_buffer(path / REPLAY_BUFFER_FILE)
+    _regrow_replay_buffer(model.replay_buffer, state["replay_buffer_arrays"])
     _set_rng_state(model, state["rng"])
     return model, state["experiment"]
+
+
+# Replay buffer ------------------------------------------------------------------------------------------------------
+# SB3 preallocates the buffer and pickles it whole: 850 MB for Ant's 1M transitions after 3000 steps. Only the filled
+# rows are saved here (SB3's own save, with the arrays cut for the time of the call) and the arrays are grown back to
+# buffer_size on load, so an early checkpoint costs what it holds.
+def _buffer_arrays(buffer: ReplayBuffer) -> dict[str, Any]:
+    """The attributes of ``buffer`` holding one row per transition: numpy arrays or torch tensors (sb3_td3x's
+    TensorReplayBuffer), or dicts of them (DictReplayBuffer)."""
+
+    def per_transition(value: Any) -> bool:
+        if isinstance(value, dict):
+            return bool(value) and all(per_transition(v) for v in value.values())
+        return isinstance(value, (np.ndarray, torch.Tensor)) and value.ndim >= 1 and value.shape[0] == buffer.buffer_size
+
+    return {name: value for name, value in vars(buffer).items() if per_transition(value)}
+
+
+def _first_rows(array: np.ndarray | torch.Tensor, n_rows: int) -> np.ndarray | torch.Tensor:
+    # A tensor slice is a view, and pickling a view writes its whole storage: clone it.
+    return array[:n_rows].clone() if isinstance(array, torch.Tensor) else array[:n_rows]
+
+
+def _save_filled_replay_buffer(model: TD3X, path: Path) -> list[str]:
+    """Save the filled rows; return the names of the arrays that were cut, for :func:`_regrow_replay_buffer`."""
+    buffer = model.replay_buffer
+    # One row more than the filled ones: with optimize_memory_usage, row ``pos`` holds the last next-observation.
+    n_kept = min(buffer.pos + 1, buffer.buffer_size) if not buffer.full else buffer.buffer_size
+    arrays = _buffer_arrays(buffer)
+    try:
+        for name, value in arrays.items():
+            cut = {k: _first_rows(v, n_kept) for k, v in value.items()} if isinstance(value, dict) else _first_rows(value, n_kept)
+            setattr(buffer, name, cut)
+        model.save_replay_buffer(path)
+    finally:
+        vars(buffer).update(arrays)
+    return sorted(arrays)
+
+
+def _regrow_replay_buffer(buffer: ReplayBuffer, names: list[str]) -> None:
+    def regrow(array: np.ndarray | torch.Tensor) -> np.ndarray | torch.Tensor:
+        shape = (buffer.buffer_size, *array.shape[1:])
+        if isinstance(array, torch.Tensor):
+            full = torch.zeros(shape, dtype=array.dtype, device=array.device)
+        else:
+            full = np.zeros(shape, dtype=array.dtype)
+        full[: array.shape[0]] = array
+        return full
+
+    for name in names:
+        value = getattr(buffer, name)
+        setattr(buffer, name, {k: regrow(v) for k, v in value.items()} if isinstance(value, dict) else regrow(value))
 
 
 def _fsync(path: Path) -> None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import warnings
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any, ClassVar, TypeVar
@@ -225,6 +226,8 @@ class TD3X(OffPolicyAlgorithm):
         self.cuda_graph = cuda_graph
         # Number of actor (delayed) updates done so far; saved with the model.
         self._n_actor_updates = 0
+        if cuda_graph:
+            self._check_cuda_graph_setup()
 
         if _init_setup_model:
             self._setup_model()
@@ -296,11 +299,17 @@ class TD3X(OffPolicyAlgorithm):
         if self.replay_buffer_class is None and isinstance(self.observation_space, spaces.Box) and self.n_steps == 1:
             # Step 1: the replay buffer, kept as tensors on the training device (SB3's other buffers otherwise).
             self.replay_buffer_class = TensorReplayBuffer
+        if self.cuda_graph and self.device.type != "cuda":
+            # Construction on a CPU already failed (__init__); this is a GPU-trained model loaded without a GPU.
+            warnings.warn(f"cuda_graph=True needs a CUDA device, got {self.device}: training steps run eagerly instead.")
+            self.cuda_graph = False
+        optimizer_kwargs = dict(self.policy_kwargs.get("optimizer_kwargs") or {})
         if self.cuda_graph:
-            self._check_cuda_graph_setup()
             # CUDA graphs need the optimizer's step counter on the device.
-            optimizer_kwargs = dict(self.policy_kwargs.get("optimizer_kwargs") or {})
             optimizer_kwargs["capturable"] = True
+        else:
+            optimizer_kwargs.pop("capturable", None)
+        if optimizer_kwargs or "optimizer_kwargs" in self.policy_kwargs:
             self.policy_kwargs["optimizer_kwargs"] = optimizer_kwargs
         super()._setup_model()
         if self.cuda_graph:
