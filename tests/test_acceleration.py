@@ -153,7 +153,7 @@ def test_gpu_trained_model_loads_on_cpu_without_graphs(tmp_path):
     model.cuda_graph = True  # as saved by a GPU run
     model.save(tmp_path / "gpu_model")
     with pytest.warns(UserWarning, match="cuda_graph=True needs a CUDA device"):
-        loaded = TD3X.load(tmp_path / "gpu_model", env="Pendulum-v1", device="cpu")
+        loaded = TD3X.load(tmp_path / "gpu_model", env=gym.make("Pendulum-v1"), device="cpu")
     assert loaded.cuda_graph is False
     assert "capturable" not in loaded.policy_kwargs.get("optimizer_kwargs", {})
     loaded.learn(150)
