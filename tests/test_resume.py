@@ -119,3 +119,28 @@ def test_save_checkpoint_replaces_the_previous_one_whole(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["last"]
     assert json.loads((tmp_path / "last" / META_FILE).read_text())["num_timesteps"] == 40
     assert os.path.getsize(tmp_path / "last" / "replay_buffer.pkl") > 0
+
+
+@pytest.mark.parametrize("optimize_memory_usage", [False, True])
+def test_the_replay_buffer_is_saved_as_its_filled_rows_and_loaded_whole(tmp_path, optimize_memory_usage):
+    from sb3_td3x import TD3X
+    from sb3_td3x.experiment.checkpoints import load_checkpoint
+    from sb3_td3x.experiment.envs import make_train_env
+
+    cfg = compose_config(["env=pendulum"])
+    kwargs = dict(buffer_size=100_000, learning_starts=10, policy_kwargs={"net_arch": [8]}, seed=0)
+    if optimize_memory_usage:
+        kwargs.update(optimize_memory_usage=True, replay_buffer_kwargs={"handle_timeout_termination": False})
+    model = TD3X("MlpPolicy", make_train_env(cfg.env, 1, 0), **kwargs)
+    model.learn(50)
+    save_checkpoint(tmp_path / "last", model, {})
+    assert os.path.getsize(tmp_path / "last" / "replay_buffer.pkl") < 100_000  # 100k preallocated rows: about 3 MB
+    loaded, _ = load_checkpoint(tmp_path / "last", TD3X, make_train_env(cfg.env, 1, 0), device="cpu")
+    before, after = model.replay_buffer, loaded.replay_buffer
+    assert (after.pos, after.full, after.buffer_size) == (before.pos, before.full, before.buffer_size)
+    for name in ("observations", "actions", "rewards", "dones"):
+        assert getattr(after, name).shape == getattr(before, name).shape
+        assert (getattr(after, name) == getattr(before, name)).all(), name
+    if not optimize_memory_usage:
+        assert (after.next_observations == before.next_observations).all()
+        assert (after.timeouts == before.timeouts).all()

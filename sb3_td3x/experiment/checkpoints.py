@@ -149,15 +149,15 @@ def load_checkpoint(path: Path, cls: type[TD3X], env: VecEnv, device: str) -> tu
 # rows are saved here (SB3's own save, with the arrays cut for the time of the call) and the arrays are grown back to
 # buffer_size on load, so an early checkpoint costs what it holds.
 def _buffer_arrays(buffer: ReplayBuffer) -> dict[str, Any]:
-    """The attributes of ``buffer`` holding one row per transition: numpy arrays or torch tensors (sb3_td3x's
-    TensorReplayBuffer), or dicts of them (DictReplayBuffer)."""
+    """The public attributes of ``buffer`` holding one row per transition: numpy arrays or torch tensors (sb3_td3x's
+    TensorReplayBuffer), or dicts of them (DictReplayBuffer). Private ones are caches (TensorReplayBuffer's views)."""
 
     def per_transition(value: Any) -> bool:
         if isinstance(value, dict):
             return bool(value) and all(per_transition(v) for v in value.values())
         return isinstance(value, (np.ndarray, torch.Tensor)) and value.ndim >= 1 and value.shape[0] == buffer.buffer_size
 
-    return {name: value for name, value in vars(buffer).items() if per_transition(value)}
+    return {name: value for name, value in vars(buffer).items() if not name.startswith("_") and per_transition(value)}
 
 
 def _first_rows(array: np.ndarray | torch.Tensor, n_rows: int) -> np.ndarray | torch.Tensor:
@@ -173,7 +173,11 @@ def _save_filled_replay_buffer(model: TD3X, path: Path) -> list[str]:
     arrays = _buffer_arrays(buffer)
     try:
         for name, value in arrays.items():
-            cut = {k: _first_rows(v, n_kept) for k, v in value.items()} if isinstance(value, dict) else _first_rows(value, n_kept)
+            cut = (
+                {k: _first_rows(v, n_kept) for k, v in value.items()}
+                if isinstance(value, dict)
+                else _first_rows(value, n_kept)
+            )
             setattr(buffer, name, cut)
         model.save_replay_buffer(path)
     finally:
