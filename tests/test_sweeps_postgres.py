@@ -76,6 +76,7 @@ def test_two_workers_share_one_study_and_a_killed_workers_trial_is_marked(pg_url
     summary = (out / study_name / "summary.txt").read_text()  # written by the survivor, the last worker
     assert f"{N_TRIALS} trials:" in summary and "stopped sending heartbeats" in summary
     assert "td3x:***@" in summary
+    optuna.delete_study(study_name=study_name, storage=storage)  # kept when the test fails, for a look
 
 
 def _wait_for_running_trial_of(worker: subprocess.Popen, storage, study_name: str, timeout: float) -> int:
