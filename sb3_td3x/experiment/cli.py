@@ -4,12 +4,14 @@ the config of a resumed run, and turn user errors into a one-paragraph message a
 from __future__ import annotations
 
 import difflib
+import math
 import re
 import sys
 from pathlib import Path
 
 from hydra.core.hydra_config import HydraConfig
 from hydra.core.override_parser.overrides_parser import OverridesParser
+from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
@@ -73,7 +75,10 @@ def _check_resume_dir(run_dir: Path) -> None:
 
 
 def main(cfg: DictConfig) -> float:
-    """Run the experiment of a config composed by ``@hydra.main``; exit with a message on a user error."""
+    """Run the experiment of a config composed by ``@hydra.main``; exit with a message on a user error.
+
+    In a multirun, a diverged job prints its message and returns NaN, so the other jobs of the sweep go on.
+    """
     try:
         if cfg.resume is not None:
             cfg = config_for_resume(cfg, list(HydraConfig.get().overrides.task))
@@ -83,6 +88,10 @@ def main(cfg: DictConfig) -> float:
     except (ConfigError, OmegaConfBaseException) as error:
         _exit(f"Error: {_one_paragraph(error)}", EXIT_CONFIG_ERROR)
     except TrainingDiverged as error:
+        if HydraConfig.get().mode == RunMode.MULTIRUN:
+            # One diverged job must not abort the sweep and lose the jobs running beside it.
+            print(f"Error: {error}", file=sys.stderr)
+            return math.nan
         _exit(f"Error: {error}", EXIT_DIVERGED)
     except TrainingInterrupted as error:
         _exit(str(error), error.exit_code)
