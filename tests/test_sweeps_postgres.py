@@ -22,7 +22,7 @@ from sb3_td3x.sweeps.storage import open_storage
 
 REPO = Path(__file__).resolve().parents[1]
 SMOKE = REPO / "sweeps" / "pendulum_smoke.yaml"
-N_TRIALS = 5
+N_TRIALS = 4
 
 
 @pytest.fixture

@@ -3,8 +3,6 @@ input gives one clear message (never a traceback), and trials are counted exactl
 
 from __future__ import annotations
 
-import subprocess
-import sys
 from pathlib import Path
 
 import optuna
@@ -157,23 +155,15 @@ def test_a_bad_storage_gives_one_clear_error(storage, expected, tmp_path, capsys
     assert expected in err and "Traceback" not in err and "s3cret" not in err, err
 
 
-def test_an_unreachable_database_gives_one_clear_error(tmp_path):
-    """Run as the user would, in a process of its own: one message on stderr, exit status 2, no traceback."""
+def test_an_unreachable_database_gives_one_clear_error(tmp_path, capsys):
     path = tmp_path / "ok.yaml"
     path.write_text(VALID)
     storage = "postgresql://td3x:s3cret@127.0.0.1:9/td3x"  # nothing listens on port 9
-    result = subprocess.run(
-        [sys.executable, "-m", "sb3_td3x.sweeps", str(path), "--storage", storage, "--output-dir", str(tmp_path)],
-        check=False,
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
-    assert result.returncode == 2, result.stderr
-    assert result.stderr.startswith("error: cannot open storage postgresql"), result.stderr
-    assert "td3x:***@127.0.0.1:9/td3x" in result.stderr and "Connection refused" in result.stderr
-    assert "Traceback" not in result.stderr and "s3cret" not in result.stderr
+    assert main([str(path), "--storage", storage, "--output-dir", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: cannot open storage postgresql"), err
+    assert "td3x:***@127.0.0.1:9/td3x" in err and "Connection refused" in err
+    assert "Traceback" not in err and "s3cret" not in err
 
 
 def test_passwords_are_masked_in_what_is_shown():
