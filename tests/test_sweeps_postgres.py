@@ -16,6 +16,7 @@ from pathlib import Path
 
 import optuna
 import pytest
+from omegaconf import OmegaConf
 from optuna.trial import TrialState
 
 from sb3_td3x.sweeps.storage import open_storage
@@ -39,8 +40,14 @@ def pg_url() -> str:
 def test_two_workers_share_one_study_and_a_killed_workers_trial_is_marked(pg_url, tmp_path):
     study_name = f"test-two-workers-{uuid.uuid4().hex[:8]}"
     out = tmp_path / "runs"
+    # The smoke search without its pruner: a trial that could be pruned at its first evaluation might end between
+    # the moment the test sees it running and the kill.
+    sweep = OmegaConf.load(SMOKE)
+    sweep.pruner = {"_target_": "optuna.pruners.NopPruner"}
+    sweep_file = tmp_path / "sweep.yaml"
+    OmegaConf.save(sweep, sweep_file)
     command = [
-        sys.executable, "-m", "sb3_td3x.sweeps", str(SMOKE),
+        sys.executable, "-m", "sb3_td3x.sweeps", str(sweep_file),
         "--storage", pg_url, "--study-name", study_name, "--n-trials", str(N_TRIALS), "--output-dir", str(out),
         "--heartbeat-interval", "1", "--grace-period", "4",
     ]  # fmt: skip
@@ -54,6 +61,8 @@ def test_two_workers_share_one_study_and_a_killed_workers_trial_is_marked(pg_url
         killed_number = _wait_for_running_trial_of(victim, storage, study_name, timeout=180)
         victim.send_signal(signal.SIGKILL)  # no chance to clean up: only the heartbeat can tell
         victim.wait(timeout=30)
+        still_running = optuna.load_study(study_name=study_name, storage=storage).get_trials(states=(TrialState.RUNNING,))
+        assert killed_number in [t.number for t in still_running], "the victim was killed in the middle of its trial"
         _, survivor_err = survivor.communicate(timeout=240)
     finally:
         for worker in workers:
