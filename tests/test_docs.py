@@ -99,7 +99,12 @@ def parse(path: Path) -> _Page:
 
 def nav_pages() -> list[tuple[str, str]]:
     """(title, source file) of every page in mkdocs.yml's nav, nested sections included."""
-    config = yaml.safe_load((ROOT / "mkdocs.yml").read_text(encoding="utf-8"))
+
+    class Loader(yaml.SafeLoader):
+        """Reads MkDocs' Python tags (``!!python/name:...``, ``!ENV``) as plain values."""
+
+    Loader.add_multi_constructor("", lambda loader, suffix, node: None)
+    config = yaml.load((ROOT / "mkdocs.yml").read_text(encoding="utf-8"), Loader=Loader)
 
     def walk(items: list) -> list[tuple[str, str]]:
         pages = []
@@ -118,6 +123,7 @@ def html_path(site: Path, source: str) -> Path:
 
 @pytest.fixture(scope="module")
 def site(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    pytest.importorskip("mkdocs", reason="the docs extra: pip install -e '.[docs]'")
     out = tmp_path_factory.mktemp("site")
     result = subprocess.run(
         [sys.executable, "-m", "mkdocs", "build", "--strict", "--site-dir", str(out)],
