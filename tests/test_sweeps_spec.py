@@ -3,6 +3,7 @@ input gives one clear message (never a traceback), and trials are counted exactl
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import optuna
@@ -237,3 +238,30 @@ def test_a_journal_file_holds_a_study_to_its_budget(tmp_path):
     reopened = optuna.load_study(study_name="j", storage=open_storage(str(journal), "j").storage)
     assert [t.state for t in reopened.trials] == [TrialState.COMPLETE] * 3
     assert reopened.trials[0].user_attrs["overrides"][-1] == f"run_dir={(tmp_path / 'j' / 'trial_0000').resolve()}"
+
+
+@pytest.mark.filterwarnings("ignore::optuna.exceptions.ExperimentalWarning")
+def test_a_dead_workers_trial_goes_stale_and_is_run_again_with_retry_stale(tmp_path):
+    """A trial whose worker stopped sending heartbeats is marked FAIL by the next worker and, with
+    ``--retry-stale 1``, queued again with the same parameters and run. Training is a stand-in here; the real
+    kill is in test_sweeps_postgres.py."""
+    spec = load_sweep(REPO / "sweeps" / "pendulum_smoke.yaml")
+    url = f"sqlite:///{tmp_path / 'optuna.db'}"
+    study_storage = open_storage(url, "s", heartbeat_interval=1, grace_period=2, retry_stale=1)
+    study = open_study(spec, study_storage, "s", spec.overrides)
+    dead = claim_trial(study, spec, study_storage, n_trials=2)  # claimed by a "worker" that then dies silently
+    dead_params = {p.path: p.suggest(dead) for p in spec.params}
+    time.sleep(3)
+
+    def stand_in(cfg, report):
+        report(150, -1000.0 * cfg.algo.tau)
+        return -1000.0 * cfg.algo.tau
+
+    objective = TrialObjective(spec, DEFAULT_CONFIG_DIR, [], tmp_path / "s", train_fn=stand_in)
+    summary = run_worker(study, spec, study_storage, objective, n_trials=2)
+    trials = study.get_trials()
+    assert trials[0].state == TrialState.FAIL and trials[0].params == dead_params
+    assert summary.ran == [1, 2] and summary.study_finished
+    assert RetryHeartbeatStaleTrialCallback.retried_trial_number(trials[1]) == 0 and trials[1].params == dead_params
+    assert trials[1].state == trials[2].state == TrialState.COMPLETE
+    assert budget_used(trials) == 2
