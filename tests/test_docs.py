@@ -13,6 +13,7 @@ import os
 import re
 import subprocess
 import sys
+import textwrap
 from html.parser import HTMLParser
 from pathlib import Path
 from types import ModuleType
@@ -333,3 +334,37 @@ def test_gradient_clipping_example_clips_the_critic_gradient():
     model.optimize_critic(loss)
     norm = th.linalg.vector_norm(th.stack([p.grad.norm() for p in model.critic.parameters() if p.grad is not None]))
     assert norm.item() <= 1e-3 * (1 + 1e-4)
+
+
+# The griffe extension that renders reST markup of docstrings (docs/_griffe/sphinx_markup.py) ------------------------
+
+
+def test_simple_table_becomes_a_markdown_table():
+    spec = importlib.util.spec_from_file_location("sphinx_markup", DOCS / "_griffe" / "sphinx_markup.py")
+    assert spec is not None and spec.loader is not None
+    markup = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(markup)
+    text = textwrap.dedent(
+        """\
+        Intro:
+
+        ====  ======  =====
+        step  what    hook
+        ====  ======  =====
+        4     sample  :meth:`a`
+        13    actor   :meth:`b`,
+                      :meth:`c`
+        ====  ======  =====
+
+        After."""
+    )
+    assert markup.simple_tables_to_markdown(text).splitlines() == [
+        "Intro:",
+        "",
+        "| step | what | hook |",
+        "|---|---|---|",
+        "| 4 | sample | :meth:`a` |",
+        "| 13 | actor | :meth:`b`, :meth:`c` |",
+        "",
+        "After.",
+    ]
