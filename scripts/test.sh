@@ -7,6 +7,7 @@ cd "$(dirname "$0")/.."
 [ -f .venv/bin/activate ] && . .venv/bin/activate
 export MUJOCO_GL="${MUJOCO_GL:-egl}"
 export PYTHONUNBUFFERED=1
+export NO_MKDOCS_2_WARNING=1
 
 # PostgreSQL for the many-workers sweep test: started from Debian's packages in CI (or when asked for).
 if [ -z "${SB3_TD3X_TEST_PG_URL:-}" ] && { [ "${CI:-}" = "true" ] || [ "${SB3_TD3X_START_POSTGRES:-}" = "1" ]; } && [ -f .ci/postgres.sh ]; then

@@ -1,6 +1,5 @@
 """TensorReplayBuffer stores and returns exactly what SB3's ReplayBuffer does, as tensors."""
 
-import io
 
 import gymnasium as gym
 import numpy as np

@@ -191,10 +191,7 @@ def test_api_reference_td3x_step_table_links_every_hook(site: Path):
     start = source.index("reads as the algorithm")
     table = source[start : source.index("</table>", start)]
     assert "====" not in table, "the reST table of TD3X's docstring was not converted"
-    # compute_target_q is steps 5-9 together, not a row of the table
-    missing = [hook for hook in HOOKS if hook != "compute_target_q" and f'href="#sb3_td3x.TD3X.{hook}"' not in table]
-    if missing == ["clipped_double_q_value"] and ":meth:`clipped_double_q`" in (TD3X.__doc__ or ""):
-        pytest.xfail("sb3_td3x/td3x/td3x.py: TD3X's step table names :meth:`clipped_double_q` (the switch) for step 8")
+    missing = [hook for hook in HOOKS if f'href="#sb3_td3x.TD3X.{hook}"' not in table]
     assert not missing, f"the step table does not link {missing}"
 
 

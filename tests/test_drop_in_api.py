@@ -6,7 +6,6 @@ file: code written for ``stable_baselines3.TD3`` runs unchanged with ``TD3X``.
 
 import inspect
 
-import pytest
 from stable_baselines3 import DDPG as SB3DDPG
 from stable_baselines3 import TD3
 from stable_baselines3.td3.policies import TD3Policy

@@ -59,7 +59,7 @@ class TD3X(OffPolicyAlgorithm):
     5     a' = pi_phi'(s')                                    :meth:`target_actions`
     6     a' <- clip(a' + clip(N(0, sigma~), -c, c))          :meth:`target_policy_smoothing_noise`
     7     Q'_i(s', a') for each critic target                 :meth:`next_q_values`
-    8     min_i Q'_i(s', a')  (clipped double-Q)              :meth:`clipped_double_q`
+    8     min_i Q'_i(s', a')  (clipped double-Q)              :meth:`clipped_double_q_value`
     9     y = r + gamma (1 - d) min_i Q'_i(s', a')            :meth:`td_target`
     10    Q_i(s, a) for each critic                           :meth:`current_q_values`
     11    L = sum_i MSE(Q_i(s, a), y)                         :meth:`critic_loss`
@@ -68,6 +68,8 @@ class TD3X(OffPolicyAlgorithm):
                                                               :meth:`actor_loss`, :meth:`optimize_actor`
     14    phi' <- tau phi + (1 - tau) phi'  (actor target)    :meth:`update_actor_target`
     15    theta'_i <- tau theta_i + (1 - tau) theta'_i        :meth:`update_critic_target`
+    5-9   the TD target y, without gradient                   :meth:`compute_target_q`
+    4-15  one gradient step, the steps above in order         :meth:`gradient_step`
     ====  =================================================  =======================================
 
     Steps 1 to 3 (replay buffer, actor and critic networks and their targets) are built by SB3's
