@@ -145,10 +145,20 @@ def test_ctrl_c_leaves_the_study_consistent_and_the_same_command_continues(tmp_p
     code, err = sweep_in_process(capsys, *args)  # the same command again
     assert code == 0, err
     trials = load(storage)
-    assert [t.number for t in trials] == [0, 1]  # 0 interrupted, 1 its re-run: the budget of one trial is spent
-    assert trials[1].state == TrialState.COMPLETE and trials[1].params == interrupted.params
-    assert trials[1].user_attrs["run_dir"] != interrupted.user_attrs["run_dir"]
-    assert "1 COMPLETE, 1 FAIL" in (out / STUDY / "summary.txt").read_text()
+    assert [t.number for t in trials] == [0, 1]  # 0 interrupted, 1 its copy: the budget of one trial is spent
+    resumed = trials[1]
+    assert resumed.state == TrialState.COMPLETE and resumed.params == interrupted.params
+    # the copy resumed the run from its checkpoint: same folder and seed, evaluations from where it stopped
+    assert resumed.user_attrs["run_dir"] == interrupted.user_attrs["run_dir"] and resumed.user_attrs["seed"] == 0
+    assert f"resume={interrupted.user_attrs['run_dir']}" in resumed.user_attrs["overrides"]
+    assert min(resumed.intermediate_values) > max(interrupted.intermediate_values)
+    assert resumed.user_attrs["fail_reason"] is None, "the copy does not inherit its original's reason"
+    evaluations = (Path(interrupted.user_attrs["run_dir"]) / "evaluations.csv").read_text().splitlines()[1:]
+    assert [int(row.split(",")[0]) for row in evaluations] == [150, 300, 450, 600]
+    summary = (out / STUDY / "summary.txt").read_text()
+    assert "1 COMPLETE, 1 FAIL" in summary and "interrupted by SIGINT" in summary
+    best_overrides = (out / STUDY / "best_overrides.txt").read_text()
+    assert "resume=" not in best_overrides and "seed=0" in best_overrides
 
 
 def test_a_diverged_or_crashing_trial_is_recorded_and_the_study_goes_on(tmp_path):
@@ -182,7 +192,7 @@ def test_a_diverged_or_crashing_trial_is_recorded_and_the_study_goes_on(tmp_path
 def _a_trial_has_evaluated(storage: str) -> bool:
     try:
         trials = load(storage)
-    except (KeyError, sqlalchemy.exc.OperationalError):  # the worker has not created the study (or its tables) yet
+    except (KeyError, sqlalchemy.exc.SQLAlchemyError):  # the worker is still creating the study (or its tables)
         return False
     return any(t.state == TrialState.RUNNING and t.intermediate_values for t in trials)
 

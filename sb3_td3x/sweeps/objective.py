@@ -32,6 +32,9 @@ DEFAULT_CONFIG_DIR = Path(__file__).resolve().parents[2] / "conf"
 #: Settings every trial gets: no progress bar interleaving with other workers' output.
 TRIAL_DEFAULTS = ["progress_bar=false"]
 
+#: User attribute of a trial stopped cleanly by Ctrl-C/SIGTERM; its queued copy inherits it and resumes the run.
+RESUMABLE = "resumable"
+
 
 def compose_config(config_dir: Path, overrides: list[str]) -> DictConfig:
     """Compose ``conf/config.yaml`` with ``overrides``, as ``python run.py <overrides>`` does."""
@@ -68,11 +71,12 @@ def check_composes(spec: SweepSpec, config_dir: Path, extra_overrides: list[str]
         raise SweepSpecError(
             f"{spec.source}: {', '.join(clash)} is both searched (search_space) and fixed (the overrides of the file or the command line); remove one of the two"
         )
-    for reserved in ("seed", "run_dir"):
+    for reserved in ("seed", "run_dir", "resume"):
         if reserved in spec.searched_paths or reserved in fixed_keys:
             raise SweepSpecError(
                 f"{spec.source}: {reserved} is set by the sweep for every trial (seed = sweep seed + trial number, "
-                f"run_dir = the trial's folder); remove it from the overrides/search_space"
+                f"run_dir = the trial's folder, resume = an interrupted trial's folder); remove it from the "
+                "overrides/search_space"
             )
     example = [p.override(p.example_value()) for p in spec.params]
     try:
@@ -121,15 +125,10 @@ class TrialObjective:
         self.study_dir = study_dir
         self.train_fn = train_fn
 
-    def overrides(self, trial: optuna.Trial, values: dict[str, Any]) -> list[str]:
+    def overrides(self, values: dict[str, Any], seed: int, run_dir: Path, resume: bool = False) -> list[str]:
         searched = [param.override(values[param.path]) for param in self.spec.params]
-        return (
-            self.spec.overrides
-            + self.extra_overrides
-            + searched
-            + TRIAL_DEFAULTS
-            + [f"seed={self.trial_seed(trial.number)}", f"run_dir={self.run_dir(trial.number)}"]
-        )
+        own = [f"seed={seed}", f"run_dir={run_dir}"] + ([f"resume={run_dir}"] if resume else [])
+        return self.spec.overrides + self.extra_overrides + searched + TRIAL_DEFAULTS + own
 
     def trial_seed(self, number: int) -> int:
         return self.spec.seed + number
@@ -141,10 +140,17 @@ class TrialObjective:
         from sb3_td3x.experiment.errors import TrainingDiverged, TrainingInterrupted
 
         values = {param.path: param.suggest(trial) for param in self.spec.params}
-        overrides = self.overrides(trial, values)
-        run_dir = self.run_dir(trial.number)
+        resume_dir = self._resumable_run_dir(trial)
+        if resume_dir is not None:  # the queued copy of a trial stopped by Ctrl-C/SIGTERM: continue its run
+            seed, run_dir = int(trial.user_attrs["seed"]), resume_dir
+        else:
+            seed, run_dir = self.trial_seed(trial.number), self.run_dir(trial.number)
+        overrides = self.overrides(values, seed, run_dir, resume=resume_dir is not None)
+        for inherited in ("fail_reason", "prune_reason", RESUMABLE):  # a queued copy inherits its original's
+            if trial.user_attrs.get(inherited) is not None:
+                trial.set_user_attr(inherited, None)
         trial.set_user_attr("overrides", overrides)
-        trial.set_user_attr("seed", self.trial_seed(trial.number))
+        trial.set_user_attr("seed", seed)
         trial.set_user_attr("run_dir", str(run_dir))
         trial.set_user_attr("worker", f"{socket.gethostname()}:{os.getpid()}")
 
@@ -180,6 +186,23 @@ class TrialObjective:
         if value is None or not math.isfinite(value):
             return TrialResult(optuna.trial.TrialState.FAIL, reason=f"diverged: the metric {self.spec.metric} is {value}")
         return TrialResult(optuna.trial.TrialState.COMPLETE, value=float(value))
+
+    @staticmethod
+    def _resumable_run_dir(trial: optuna.Trial) -> Path | None:
+        """The run folder to resume: set when this trial is the queued copy of one that stopped cleanly on
+        Ctrl-C/SIGTERM and left a complete checkpoint. A copy of a trial failed by the heartbeat starts afresh in
+        its own folder instead, since its first worker may still be writing to the old one."""
+        from sb3_td3x.experiment.checkpoints import resume_checkpoint
+        from sb3_td3x.experiment.errors import ConfigError
+
+        if not trial.user_attrs.get(RESUMABLE):
+            return None
+        run_dir = Path(trial.user_attrs["run_dir"])
+        try:
+            resume_checkpoint(run_dir)
+        except ConfigError:  # stopped before its first checkpoint: start again
+            return None
+        return run_dir
 
     def train(self, cfg: DictConfig, report: Callable[[int, float], None]) -> float:
         if self.train_fn is None:

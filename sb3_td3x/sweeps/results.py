@@ -50,8 +50,9 @@ def _atomic_write(path: Path, text: str) -> None:
 
 
 def best_overrides(trial: FrozenTrial) -> list[str]:
-    """The overrides that retrain the best trial: its own, less its run folder and the sweep's display settings."""
-    return [o for o in trial.user_attrs["overrides"] if not o.startswith("run_dir=") and o not in TRIAL_DEFAULTS]
+    """The overrides that retrain the best trial: its own, less its run folder (and resume) and display settings."""
+    own = ("run_dir=", "resume=")  # a new run gets its own folder and starts from scratch
+    return [o for o in trial.user_attrs["overrides"] if not o.startswith(own) and o not in TRIAL_DEFAULTS]
 
 
 def tuned_config(overrides: list[str], config_dir: Path) -> str:

@@ -175,8 +175,13 @@ def _create_rdb(url: str, engine_kwargs: dict, heartbeat_interval: int, grace_pe
                     grace_period=grace_period,
                     heartbeat_stale_trial_callback=callback,
                 )
-        except (sqlalchemy.exc.IntegrityError, sqlalchemy.exc.ProgrammingError):
-            if attempt == 2:
+        except sqlalchemy.exc.DBAPIError as err:
+            # Another process created a table or row between our check and our CREATE: SQLite says "table ... already
+            # exists" (OperationalError), PostgreSQL a duplicate key (IntegrityError) or relation (ProgrammingError).
+            raced = isinstance(
+                err, sqlalchemy.exc.IntegrityError | sqlalchemy.exc.ProgrammingError
+            ) or "already exists" in str(err)
+            if not raced or attempt == 2:
                 raise
             time.sleep(1.0 + attempt)
     raise AssertionError("unreachable")

@@ -8,9 +8,9 @@ Any number of workers, on one machine or many, may run against the same storage 
 3. tell Optuna how it ended: COMPLETE with its value, PRUNED, or FAIL with ``fail_reason`` in its user attributes.
 
 When the budget is spent the worker waits for trials still running elsewhere to end (or to be marked FAIL by the
-heartbeat), and the last worker writes the results (:mod:`sb3_td3x.sweeps.results`). Ctrl-C (or SIGTERM) marks the
-running trial FAIL ("interrupted"), queues it again with the same parameters, and stops the worker: running the
-same command again continues the study.
+heartbeat), and the last worker writes the results (:mod:`sb3_td3x.sweeps.results`). Ctrl-C (or SIGTERM) lets the
+runner checkpoint, marks the running trial FAIL ("interrupted"), queues a copy with the same parameters, and stops
+the worker: running the same command again continues the study, and the copy resumes the run from its checkpoint.
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ from optuna.storages import RetryHeartbeatStaleTrialCallback, fail_stale_trials
 from optuna.trial import FrozenTrial, TrialState
 
 from sb3_td3x.sweeps.errors import SweepError
-from sb3_td3x.sweeps.objective import TrialObjective, TrialResult
+from sb3_td3x.sweeps.objective import RESUMABLE, TrialObjective, TrialResult
 from sb3_td3x.sweeps.spec import SweepSpec
 from sb3_td3x.sweeps.storage import StudyStorage, heartbeat
 
@@ -171,6 +171,8 @@ def run_worker(
                 result = objective(trial)
         except KeyboardInterrupt:  # Ctrl-C outside training (while composing the config, say)
             result = TrialResult(TrialState.FAIL, reason="interrupted by SIGINT", interrupted=True)
+        if result.interrupted:
+            trial.set_user_attr(RESUMABLE, True)  # its queued copy continues from the checkpoint
         tell(study, trial, result)
         ran.append(trial.number)
         if result.interrupted:
