@@ -1,6 +1,7 @@
 """Opt-in accelerations of TD3X's gradient step: bf16 autocast, ``torch.compile``, CUDA graph capture.
 
-Each wraps :meth:`TD3X.gradient_step` as it is, so overridden hooks are accelerated too.
+Each wraps :meth:`TD3X.gradient_step` (or :meth:`TD3X.update_from_batch`) as it is, so overridden hooks are
+accelerated too.
 """
 
 from __future__ import annotations
@@ -25,9 +26,9 @@ def autocast_context(device: th.device, enabled: bool) -> contextlib.AbstractCon
     return th.autocast(device_type=device.type, dtype=th.bfloat16)
 
 
-def compiled_step(step: StepFn) -> StepFn:
-    """``torch.compile`` of the whole gradient step (forward, backward, optimizer steps, Polyak updates)."""
-    return th.compile(step, dynamic=False)
+def compiled_step(update: Callable[[Any, bool], Infos]) -> Callable[[Any, bool], Infos]:
+    """``torch.compile`` of the update from a batch (forward, backward, optimizer steps, Polyak updates)."""
+    return th.compile(update, dynamic=False)
 
 
 def cuda_graph_capture(fn: Callable[[], Infos], pool: Any | None) -> tuple[Callable[[], None], Infos, Any]:

@@ -69,6 +69,7 @@ class TD3X(OffPolicyAlgorithm):
     14    phi' <- tau phi + (1 - tau) phi'  (actor target)    :meth:`update_actor_target`
     15    theta'_i <- tau theta_i + (1 - tau) theta'_i        :meth:`update_critic_target`
     5-9   the TD target y, without gradient                   :meth:`compute_target_q`
+    5-15  the updates from a sampled batch                    :meth:`update_from_batch`
     4-15  one gradient step, the steps above in order         :meth:`gradient_step`
     ====  =================================================  =======================================
 
@@ -384,8 +385,14 @@ class TD3X(OffPolicyAlgorithm):
 
         :return: the detached statistics of the critic loss and of the actor loss (empty without actor update)
         """
+        batch = self.sample_batch(batch_size)  # step 4
+        return self.update_from_batch(batch, update_actor)  # steps 5-15
+
+    def update_from_batch(
+        self, batch: ReplayBufferSamples, update_actor: bool
+    ) -> tuple[dict[str, th.Tensor], dict[str, th.Tensor]]:
+        """Steps 5 to 15 on a sampled batch: critic update, then (when ``update_actor``) actor and target updates."""
         with self._autocast():
-            batch = self.sample_batch(batch_size)  # step 4
             target_q = self.compute_target_q(batch)  # steps 5-9
             current_q = self.current_q_values(batch)  # step 10
         critic_loss, critic_info = self.critic_loss(current_q, target_q)  # step 11
@@ -408,7 +415,9 @@ class TD3X(OffPolicyAlgorithm):
             if self.cuda_graph:
                 self._step_fn = GraphedGradientStep(self)
             elif self.compile_update:
-                self._step_fn = compiled_step(self.gradient_step)
+                # Sampling stays eager: the buffer's size changes at every step.
+                update = compiled_step(self.update_from_batch)
+                self._step_fn = lambda batch_size, update_actor: update(self.sample_batch(batch_size), update_actor)
             else:
                 self._step_fn = self.gradient_step
         return self._step_fn
