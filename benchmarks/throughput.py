@@ -1,7 +1,7 @@
 """Throughput of TD3X against SB3's TD3: same env, same hyperparameters, one process, chunks alternated A B A B.
 
     python benchmarks/throughput.py                          # Ant-v5 and HalfCheetah-v5, defaults, fp32
-    python benchmarks/throughput.py --env Ant-v5 --td3x bf16=true compile=true
+    python benchmarks/throughput.py --env Ant-v5 --td3x bf16=true
     python benchmarks/throughput.py --json docs/assets/bench.json
 
 Prints end-to-end environment steps/s of each (collection and training), the median ratio over chunks, the time per
