@@ -144,3 +144,16 @@ def test_seeded_sample_equals_sb3_sample(n_envs, optimize_memory_usage):
     got = buf.sample(16)
     for name in ("observations", "actions", "next_observations", "dones", "rewards"):
         th.testing.assert_close(getattr(got, name), getattr(expected, name).float(), msg=name)
+
+
+def test_static_sampling_state_is_not_pickled():
+    """Static bounds belong to the process's graphs: a pickled buffer loads back to ordinary sampling."""
+    import pickle
+
+    buf = TensorReplayBuffer(50, OBS, ACT, device="cpu")
+    fill([buf], n_steps=20, n_envs=1)
+    buf.enable_static_sampling()
+    clone = pickle.loads(pickle.dumps(buf))
+    assert buf.static_sampling and not clone.static_sampling
+    np.random.seed(0)
+    assert clone.sample(8).observations.shape == (8, 4)

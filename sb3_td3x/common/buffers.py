@@ -32,6 +32,9 @@ class TensorReplayBuffer(ReplayBuffer):
     With a ``VecNormalize`` env, samples are normalised with the env's current statistics, as SB3 does.
     """
 
+    # The storage tensors (``next_observations`` is None with ``optimize_memory_usage``).
+    STORAGE = ("observations", "next_observations", "actions", "rewards", "dones", "timeouts")
+
     def __init__(
         self,
         buffer_size: int,
@@ -83,15 +86,16 @@ class TensorReplayBuffer(ReplayBuffer):
     def device(self, device: th.device | str) -> None:
         device = get_device(device)
         if hasattr(self, "observations") and device != self._device:
-            for name in ("observations", "next_observations", "actions", "rewards", "dones", "timeouts"):
+            for name in self.STORAGE:
                 tensor = getattr(self, name)
                 if tensor is not None:
                     setattr(self, name, tensor.to(device))
+            self.__dict__.pop("_views", None)
         self._device = device
 
     def nbytes(self) -> int:
         """Bytes held by the storage tensors."""
-        tensors = (self.observations, self.next_observations, self.actions, self.rewards, self.dones, self.timeouts)
+        tensors = (getattr(self, name) for name in self.STORAGE)
         return sum(t.numel() * t.element_size() for t in tensors if t is not None)
 
     @th.no_grad()
@@ -145,8 +149,7 @@ class TensorReplayBuffer(ReplayBuffer):
         """numpy arrays sharing memory with the CPU storage tensors (rebuilt after a move or a load)."""
         views = self.__dict__.get("_views")
         if views is None or views["_owner"] is not self.observations:
-            names = ("observations", "next_observations", "actions", "rewards", "dones", "timeouts")
-            views = {name: getattr(self, name).numpy() for name in names if getattr(self, name) is not None}
+            views = {name: getattr(self, name).numpy() for name in self.STORAGE if getattr(self, name) is not None}
             views["_owner"] = self.observations
             self._views = views
         return views
@@ -225,9 +228,11 @@ class TensorReplayBuffer(ReplayBuffer):
     def __getstate__(self) -> dict[str, Any]:
         # Saved on the CPU so that a buffer saved on a GPU machine loads anywhere.
         state = self.__dict__.copy()
-        for name in ("observations", "next_observations", "actions", "rewards", "dones", "timeouts"):
+        for name in self.STORAGE:
             if state.get(name) is not None:
                 state[name] = state[name].cpu()
         state["_device"] = th.device("cpu")
-        state.pop("_views", None)
+        # Views and static sampling bounds belong to this process's storage and graphs; the loader sets them up again.
+        for name in ("_views", "_static_offset", "_static_span"):
+            state.pop(name, None)
         return state

@@ -638,6 +638,14 @@ class TD3X(OffPolicyAlgorithm):
             progress_bar=progress_bar,
         )
 
+    def load_replay_buffer(self, path: Any, truncate_last_traj: bool = True) -> None:
+        """SB3's ``load_replay_buffer``; with ``cuda_graph=True`` the new buffer samples on the device, and the
+        graphs, captured on the old buffer's tensors, are captured again."""
+        super().load_replay_buffer(path, truncate_last_traj)
+        if self.cuda_graph and isinstance(self.replay_buffer, TensorReplayBuffer):
+            self.replay_buffer.enable_static_sampling()
+        self._step_fn = None
+
     def _excluded_save_params(self) -> list[str]:
         return [
             *super()._excluded_save_params(),
