@@ -87,8 +87,12 @@ def test_graphed_step_logic_matches_eager_steps():
             finally:
                 graphed.in_capture = False
 
-    # The CPU buffer takes the static-bounds sampling the CUDA path uses.
+    # The CPU buffer takes the static-bounds sampling the CUDA path uses, and the learning rates live in tensors
+    # (updated in place by _update_learning_rate), as with cuda_graph=True.
     graphed.replay_buffer.enable_static_sampling()
+    for optimizer in (graphed.actor.optimizer, graphed.critic.optimizer):
+        for group in optimizer.param_groups:
+            group["lr"] = th.tensor(float(group["lr"]))
     probe = Probe(graphed, capture=eager_capture)
     graphed._step_fn = probe
     th.manual_seed(0)
@@ -97,6 +101,7 @@ def test_graphed_step_logic_matches_eager_steps():
     th.manual_seed(0)
     graphed.train(gradient_steps=6, batch_size=32)
     assert sorted(probe._graphs) == [(32, False), (32, True)]
+    assert isinstance(graphed.critic.optimizer.param_groups[0]["lr"], th.Tensor)
     for (name, a), b in zip(eager.policy.state_dict().items(), graphed.policy.state_dict().values()):
         th.testing.assert_close(b, a, rtol=1e-5, atol=1e-6, msg=name)
     for key in ("train/critic_loss", "train/actor_loss", "train/q1_mean", "train/target_q_mean"):

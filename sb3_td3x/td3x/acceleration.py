@@ -19,11 +19,14 @@ Infos = tuple[dict[str, th.Tensor], dict[str, th.Tensor]]
 StepFn = Callable[[int, bool], Infos]
 
 
-def autocast_context(device: th.device, enabled: bool) -> contextlib.AbstractContextManager:
-    """bf16 autocast for the forward passes (AMX on recent x86 CPUs, tensor cores on GPUs); weights stay fp32."""
+def autocast_context(device: th.device, enabled: bool, cache: bool = True) -> contextlib.AbstractContextManager:
+    """bf16 autocast for the forward passes (AMX on recent x86 CPUs, tensor cores on GPUs); weights stay fp32.
+
+    ``cache=False`` under CUDA graph capture: cached casts must not outlive the captured region.
+    """
     if not enabled:
         return contextlib.nullcontext()
-    return th.autocast(device_type=device.type, dtype=th.bfloat16)
+    return th.autocast(device_type=device.type, dtype=th.bfloat16, cache_enabled=cache)
 
 
 def compiled_step(update: Callable[[Any, bool], Infos]) -> Callable[[Any, bool], Infos]:

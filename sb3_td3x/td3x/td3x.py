@@ -326,6 +326,11 @@ class TD3X(OffPolicyAlgorithm):
         self._create_aliases()
         self._critic_lr_schedule = None if self.critic_learning_rate is None else FloatSchedule(self.critic_learning_rate)
         update_learning_rate(self.critic.optimizer, self.critic_lr_schedule(1))
+        if self.cuda_graph:
+            # A float learning rate would be baked into the graphs: keep it in a device tensor, updated in place.
+            for optimizer in (self.actor.optimizer, self.critic.optimizer):
+                for group in optimizer.param_groups:
+                    group["lr"] = th.tensor(float(group["lr"]), device=self.device)
 
     @property
     def critic_lr_schedule(self) -> Schedule:
@@ -407,7 +412,7 @@ class TD3X(OffPolicyAlgorithm):
         return critic_info, actor_info
 
     def _autocast(self) -> contextlib.AbstractContextManager:
-        return autocast_context(self.device, self.bf16)
+        return autocast_context(self.device, self.bf16, cache=not self.cuda_graph)
 
     def _gradient_step_fn(self) -> Callable[[int, bool], tuple[dict[str, th.Tensor], dict[str, th.Tensor]]]:
         """``gradient_step`` itself, or its compiled or CUDA-graphed form when those are switched on."""
@@ -605,7 +610,12 @@ class TD3X(OffPolicyAlgorithm):
             optimizers = [optimizers]
         for optimizer in optimizers:
             schedule = critic_schedule if optimizer is self.critic.optimizer else self.lr_schedule
-            update_learning_rate(optimizer, schedule(progress))
+            value = schedule(progress)
+            for group in optimizer.param_groups:
+                if isinstance(group["lr"], th.Tensor):  # cuda_graph: the graphs read it from the device
+                    group["lr"].fill_(value)
+                else:
+                    group["lr"] = value
 
     def _log_train_infos(self, critic_infos: list[dict[str, th.Tensor]], actor_infos: list[dict[str, th.Tensor]]) -> None:
         """Average the detached statistics of the gradient steps, with a single device-to-host copy."""
