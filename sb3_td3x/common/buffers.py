@@ -67,6 +67,10 @@ class TensorReplayBuffer(ReplayBuffer):
         obs_dtype = _storage_dtype(self.observation_space.dtype)
 
         def zeros(*shape: int, dtype: th.dtype = th.float32) -> th.Tensor:
+            if device.type == "cpu":
+                # numpy's zeros take zero pages from the OS lazily: a 1M-transition buffer costs nothing until filled
+                # (torch.zeros writes every byte up front, seconds for MuJoCo sizes).
+                return th.from_numpy(np.zeros(shape, dtype=th.empty(0, dtype=dtype).numpy().dtype))
             return th.zeros(shape, dtype=dtype, device=device)
 
         self.observations = zeros(size, n, *self.obs_shape, dtype=obs_dtype)
