@@ -131,13 +131,15 @@ def test_td3x_learn_with_optimize_memory_usage():
     model.learn(150)
 
 
+@pytest.mark.parametrize("n_steps", [30, 57])  # partly filled, and wrapped around (full)
 @pytest.mark.parametrize("n_envs,optimize_memory_usage", [(1, False), (2, False), (1, True)])
-def test_seeded_sample_equals_sb3_sample(n_envs, optimize_memory_usage):
+def test_seeded_sample_equals_sb3_sample(n_envs, optimize_memory_usage, n_steps):
     kwargs = dict(n_envs=n_envs, optimize_memory_usage=optimize_memory_usage,
                   handle_timeout_termination=not optimize_memory_usage)
     ref = ReplayBuffer(40, OBS, ACT, device="cpu", **kwargs)
     buf = TensorReplayBuffer(40, OBS, ACT, device="cpu", **kwargs)
-    fill([ref, buf], n_steps=30, n_envs=n_envs)
+    fill([ref, buf], n_steps=n_steps, n_envs=n_envs)
+    assert ref.full == buf.full == (n_steps * n_envs >= 40)
     np.random.seed(5)
     expected = ref.sample(16)
     np.random.seed(5)

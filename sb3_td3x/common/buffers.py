@@ -169,13 +169,16 @@ class TensorReplayBuffer(ReplayBuffer):
 
     def refresh_static_bounds(self) -> None:
         """Write the current valid index range into the static bound tensors (asynchronous fills, no sync)."""
-        if self.optimize_memory_usage and self.full:
-            # Index ``pos`` holds the newest next-observation, not a valid transition: skip it (as SB3 does).
-            offset, span = self.pos + 1, self.buffer_size - 1
-        else:
-            offset, span = 0, self.buffer_size if self.full else self.pos
+        offset, span = self._valid_range()
         self._static_offset.fill_(offset)
         self._static_span.fill_(max(span, 1))
+
+    def _valid_range(self) -> tuple[int, int]:
+        """The transitions that can be sampled: indices ``(offset + k) % buffer_size`` for ``k`` in ``[0, span)``."""
+        if self.optimize_memory_usage and self.full:
+            # Index ``pos`` holds the newest next-observation, not a valid transition: skip it (as SB3 does).
+            return self.pos + 1, self.buffer_size - 1
+        return 0, self.buffer_size if self.full else self.pos
 
     @property
     def static_sampling(self) -> bool:
@@ -194,14 +197,9 @@ class TensorReplayBuffer(ReplayBuffer):
             batch_inds = (self._static_offset + steps) % self.buffer_size
             env_inds = th.randint(0, self.n_envs, (batch_size,), device=self._device)
             return self._gather(batch_inds, env_inds, env)
-        if not self.optimize_memory_usage:
-            upper_bound = self.buffer_size if self.full else self.pos
-            np_inds = np.random.randint(0, upper_bound, size=batch_size)
-        elif self.full:
-            # Index ``pos`` holds the newest next-observation, not a valid transition: skip it (as SB3 does).
-            np_inds = (np.random.randint(1, self.buffer_size, size=batch_size) + self.pos) % self.buffer_size
-        else:
-            np_inds = np.random.randint(0, self.pos, size=batch_size)
+        # numpy's randint(0, span) draws what SB3's randint(0, upper) / randint(1, buffer_size) draw.
+        offset, span = self._valid_range()
+        np_inds = (offset + np.random.randint(0, span, size=batch_size)) % self.buffer_size
         return self._get_samples(np_inds, env=env)
 
     def _get_samples(self, batch_inds: np.ndarray | th.Tensor, env: VecNormalize | None = None) -> ReplayBufferSamples:
