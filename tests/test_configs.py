@@ -10,6 +10,8 @@ import pytest
 from hydra.errors import ConfigCompositionException
 from omegaconf import OmegaConf
 
+from stable_baselines3 import TD3
+
 from sb3_td3x import DDPG, PRESETS, TD3X
 from sb3_td3x.experiment.algos import algorithm_kwargs, build_algorithm
 from sb3_td3x.experiment.callbacks import PeriodicEvaluation
@@ -46,10 +48,12 @@ def test_every_algo_config_builds_its_algorithm(name):
     check_config(cfg)
     env = make_train_env(cfg.env, n_envs=1, seed=0)
     model = build_algorithm(cfg, env)
-    assert isinstance(model, DDPG if name == "ddpg" else TD3X)
+    assert type(model) is {"ddpg": DDPG, "sb3_td3": TD3}.get(name, TD3X)
     assert model.policy_delay == cfg.algo.policy_delay and model.tau == cfg.algo.tau and model.gamma == cfg.algo.gamma
-    assert model.target_policy_smoothing == cfg.algo.target_policy_smoothing
-    assert model.clipped_double_q == cfg.algo.clipped_double_q
+    assert model.batch_size == cfg.algo.batch_size and model.target_policy_noise == cfg.algo.target_policy_noise
+    if name != "sb3_td3":  # SB3's TD3 has neither switch; its config keeps TD3X's defaults (tested below)
+        assert model.target_policy_smoothing == cfg.algo.target_policy_smoothing
+        assert model.clipped_double_q == cfg.algo.clipped_double_q
     assert len(model.critic.q_networks) == cfg.algo.n_critics
     assert model.learning_starts == cfg.env.learning_starts
     np.testing.assert_allclose(model.action_noise._sigma, cfg.algo.exploration_noise)
@@ -57,6 +61,20 @@ def test_every_algo_config_builds_its_algorithm(name):
     assert widths[:-1] == list(cfg.algo.net_arch)
     model.learn(10)  # one short rollout: the object works, not only builds
     env.close()
+
+
+def test_sb3_td3_config_runs_the_td3_settings_and_refuses_td3x_only_switches():
+    """algo=sb3_td3 is SB3's TD3 with algo/td3.yaml's hyper-parameters, the baseline of the results pages."""
+    td3 = algorithm_kwargs(compose_config(["algo=td3"]).algo, n_actions=1)
+    sb3 = algorithm_kwargs(compose_config(["algo=sb3_td3"]).algo, n_actions=1)
+    td3_only = {"critic_learning_rate", "target_policy_smoothing", "clipped_double_q"}
+    assert set(td3) - set(sb3) == td3_only
+    for key in sb3:
+        if key != "action_noise":
+            assert sb3[key] == td3[key], key
+    for override in ("algo.target_policy_smoothing=false", "algo.clipped_double_q=false", "algo.critic_learning_rate=3e-4"):
+        with pytest.raises(ConfigError, match="SB3's TD3 .* has no such option"):
+            algorithm_kwargs(compose_config(["algo=sb3_td3", override]).algo, n_actions=1)
 
 
 @pytest.mark.parametrize("name", [name for name in options("algo") if name in PRESETS])

@@ -1,4 +1,9 @@
-"""Build the algorithm named by ``cfg.algo._target_`` (``sb3_td3x.TD3X`` or ``sb3_td3x.DDPG``) from the config."""
+"""Build the algorithm named by ``cfg.algo._target_`` from the config.
+
+``sb3_td3x.TD3X`` and its subclasses (``sb3_td3x.DDPG``) take every field. SB3's own ``stable_baselines3.TD3``
+(``algo=sb3_td3``, the baseline of the results pages) takes the fields both share; a TD3X-only field set away from
+its default is an error rather than silently ignored.
+"""
 
 from __future__ import annotations
 
@@ -7,6 +12,7 @@ from typing import Any
 import numpy as np
 from hydra.utils import get_class
 from omegaconf import DictConfig
+from stable_baselines3 import TD3
 from stable_baselines3.common.noise import NormalActionNoise
 from stable_baselines3.common.vec_env import VecEnv
 
@@ -15,16 +21,20 @@ from sb3_td3x.experiment.errors import ConfigError
 
 # AlgoConfig fields that are not constructor arguments, or not under the same name.
 _TRANSLATED = ("_target_", "name", "policy", "exploration_noise", "net_arch", "n_critics", "train_freq", "train_freq_unit")
+# TD3X arguments that SB3's TD3 lacks, with the value at which TD3X behaves as SB3's TD3 does.
+_TD3X_ONLY = {"critic_learning_rate": None, "target_policy_smoothing": True, "clipped_double_q": True}
 
 
-def algorithm_class(algo_cfg: DictConfig) -> type[TD3X]:
-    """The class named by ``algo._target_``; it must be :class:`sb3_td3x.TD3X` or a subclass."""
+def algorithm_class(algo_cfg: DictConfig) -> type[TD3X] | type[TD3]:
+    """The class named by ``algo._target_``: :class:`sb3_td3x.TD3X`, SB3's ``TD3``, or a subclass of either."""
     try:
         cls = get_class(algo_cfg._target_)
     except Exception as error:  # hydra wraps the ImportError/AttributeError in its own exception types
         raise ConfigError(f"algo._target_={algo_cfg._target_!r} cannot be imported ({error}).") from None
-    if not (isinstance(cls, type) and issubclass(cls, TD3X)):
-        raise ConfigError(f"algo._target_={algo_cfg._target_!r} is not sb3_td3x.TD3X or a subclass of it.")
+    if not (isinstance(cls, type) and issubclass(cls, (TD3X, TD3))):
+        raise ConfigError(
+            f"algo._target_={algo_cfg._target_!r} is not sb3_td3x.TD3X, stable_baselines3.TD3 or a subclass of either."
+        )
     return cls
 
 
@@ -35,6 +45,14 @@ def algorithm_kwargs(algo_cfg: DictConfig, n_actions: int) -> dict[str, Any]:
     and ``n_critics`` go into ``policy_kwargs``, ``train_freq`` and ``train_freq_unit`` make SB3's tuple.
     """
     kwargs = {key: algo_cfg[key] for key in algo_cfg if key not in _TRANSLATED}
+    if issubclass(algorithm_class(algo_cfg), TD3):
+        changed = [f"algo.{key}={kwargs[key]}" for key, default in _TD3X_ONLY.items() if kwargs[key] != default]
+        if changed:
+            raise ConfigError(
+                f"{', '.join(changed)}: SB3's TD3 (algo._target_={algo_cfg._target_}) has no such option; "
+                "use algo=td3 (sb3_td3x.TD3X) or drop the override."
+            )
+        kwargs = {key: value for key, value in kwargs.items() if key not in _TD3X_ONLY}
     if algo_cfg.exploration_noise > 0:
         sigma = algo_cfg.exploration_noise * np.ones(n_actions, dtype=np.float32)
         kwargs["action_noise"] = NormalActionNoise(mean=np.zeros(n_actions, dtype=np.float32), sigma=sigma)
@@ -43,7 +61,7 @@ def algorithm_kwargs(algo_cfg: DictConfig, n_actions: int) -> dict[str, Any]:
     return kwargs
 
 
-def build_algorithm(cfg: DictConfig, env: VecEnv) -> TD3X:
+def build_algorithm(cfg: DictConfig, env: VecEnv) -> TD3X | TD3:
     """A fresh algorithm for ``env``; a ``ValueError`` of the constructor becomes a :class:`ConfigError`."""
     cls = algorithm_class(cfg.algo)
     kwargs = algorithm_kwargs(cfg.algo, n_actions=int(np.prod(env.action_space.shape)))

@@ -34,7 +34,7 @@ import torch
 from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecNormalize
 
-from sb3_td3x import TD3X
+from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from sb3_td3x.experiment.errors import ConfigError
 
 LAST = "last"
@@ -51,7 +51,7 @@ def checkpoint_dir(run_dir: Path, name: str) -> Path:
     return run_dir / "checkpoints" / name
 
 
-def save_checkpoint(target: Path, model: TD3X, experiment_state: dict[str, Any], replay_buffer: bool = True) -> Path:
+def save_checkpoint(target: Path, model: OffPolicyAlgorithm, experiment_state: dict[str, Any], replay_buffer: bool = True) -> Path:
     """Write a complete checkpoint of ``model`` to the folder ``target``, atomically (see the module docstring).
 
     :param experiment_state: picklable state of the experiment (evaluation history, ...), returned by
@@ -122,7 +122,7 @@ def resume_checkpoint(run_dir: Path) -> Path:
     return found
 
 
-def load_checkpoint(path: Path, cls: type[TD3X], env: VecEnv, device: str) -> tuple[TD3X, dict[str, Any]]:
+def load_checkpoint(path: Path, cls: type[OffPolicyAlgorithm], env: VecEnv, device: str) -> tuple[OffPolicyAlgorithm, dict[str, Any]]:
     """Rebuild the model saved in ``path`` on ``env`` (a fresh training env of the same config), exactly as it was.
 
     Restores the environments within their episodes, the normalisation statistics, the replay buffer and the
@@ -165,7 +165,7 @@ def _first_rows(array: np.ndarray | torch.Tensor, n_rows: int) -> np.ndarray | t
     return array[:n_rows].clone() if isinstance(array, torch.Tensor) else array[:n_rows]
 
 
-def _save_filled_replay_buffer(model: TD3X, path: Path) -> list[str]:
+def _save_filled_replay_buffer(model: OffPolicyAlgorithm, path: Path) -> list[str]:
     """Save the filled rows; return the names of the arrays that were cut, for :func:`_regrow_replay_buffer`."""
     buffer = model.replay_buffer
     # One row more than the filled ones: with optimize_memory_usage, row ``pos`` holds the last next-observation.
@@ -206,7 +206,7 @@ def _fsync(path: Path) -> None:
 
 
 # Random number generators -------------------------------------------------------------------------------------------
-def _rng_state(model: TD3X) -> dict[str, Any]:
+def _rng_state(model: OffPolicyAlgorithm) -> dict[str, Any]:
     return {
         "python": random.getstate(),
         "numpy": np.random.get_state(),
@@ -216,7 +216,7 @@ def _rng_state(model: TD3X) -> dict[str, Any]:
     }
 
 
-def _set_rng_state(model: TD3X, rng: dict[str, Any]) -> None:
+def _set_rng_state(model: OffPolicyAlgorithm, rng: dict[str, Any]) -> None:
     random.setstate(rng["python"])
     np.random.set_state(rng["numpy"])
     torch.set_rng_state(rng["torch"])

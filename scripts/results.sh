@@ -1,0 +1,50 @@
+#!/usr/bin/env bash
+# Runs (or resumes) the training runs behind docs/results.md, a few at a time, each in a fixed folder
+# runs/results/<env>/<algo>/seed<seed>, so that a result can be built over several sittings: run the same command
+# again and every unfinished run resumes from its last checkpoint; finished ones are skipped.
+#
+#   bash scripts/results.sh 200000 hopper:td3:0 hopper:sb3_td3:0 ...   # STEPS then env:algo:seed jobs
+#   JOBS=2 bash scripts/results.sh ...                                  # parallel runs (default: one per core)
+#
+# Stop with Ctrl-C (or kill the process group): each run checkpoints on SIGINT/SIGTERM before it exits.
+set -uo pipefail
+cd "$(dirname "$0")/.."
+steps=${1:?usage: bash scripts/results.sh STEPS env:algo:seed [env:algo:seed ...]}
+shift
+[[ $steps =~ ^[0-9]+$ ]] || { echo "error: STEPS must be a whole number of environment steps, got '$steps'" >&2; exit 2; }
+python=${PYTHON:-python}
+jobs=${JOBS:-$(nproc)}
+root=${RESULTS_DIR:-runs/results}
+
+one() {
+  local job=$1 env algo seed dir
+  IFS=: read -r env algo seed <<<"$job"
+  if [[ -z $env || -z $algo || ! $seed =~ ^[0-9]+$ ]]; then
+    echo "error: job '$job' is not env:algo:seed (e.g. hopper:td3:0)" >&2
+    return 2
+  fi
+  dir=$root/$env/$algo/seed$seed
+  if [[ -f $dir/summary.json ]] && "$python" - "$dir/summary.json" "$steps" <<'PY'
+import json, sys
+sys.exit(0 if json.load(open(sys.argv[1]))["total_timesteps"] >= int(sys.argv[2]) else 1)
+PY
+  then
+    echo "done already: $dir"
+    return 0
+  fi
+  mkdir -p "$dir"
+  if [[ -d $dir/checkpoints/last ]]; then
+    echo "resuming: $dir"
+    "$python" run.py resume="$dir" total_timesteps="$steps" progress_bar=false >>"$dir/stdout.log" 2>&1
+  else
+    echo "starting: $dir"
+    "$python" run.py env="$env" algo="$algo" seed="$seed" total_timesteps="$steps" checkpoint.freq=25000 \
+      run_dir="$dir" progress_bar=false >>"$dir/stdout.log" 2>&1
+  fi
+  local rc=$?
+  echo "exit $rc: $dir"
+  return $rc
+}
+export -f one
+export steps python root
+printf '%s\n' "$@" | xargs -P "$jobs" -I{} bash -c 'one "$1"' _ {}
