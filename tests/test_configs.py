@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 from hydra.errors import ConfigCompositionException
 from omegaconf import OmegaConf
-
 from stable_baselines3 import TD3
 
 from sb3_td3x import DDPG, PRESETS, TD3X

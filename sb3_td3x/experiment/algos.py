@@ -25,7 +25,7 @@ _TRANSLATED = ("_target_", "name", "policy", "exploration_noise", "net_arch", "n
 _TD3X_ONLY = {"critic_learning_rate": None, "target_policy_smoothing": True, "clipped_double_q": True}
 
 
-def algorithm_class(algo_cfg: DictConfig) -> type[TD3X] | type[TD3]:
+def algorithm_class(algo_cfg: DictConfig) -> type[TD3X | TD3]:
     """The class named by ``algo._target_``: :class:`sb3_td3x.TD3X`, SB3's ``TD3``, or a subclass of either."""
     try:
         cls = get_class(algo_cfg._target_)

@@ -32,9 +32,9 @@ import mujoco
 import numpy as np
 import torch
 from stable_baselines3.common.buffers import ReplayBuffer
+from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecNormalize
 
-from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from sb3_td3x.experiment.errors import ConfigError
 
 LAST = "last"
