@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from PIL import Image
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
@@ -85,6 +86,9 @@ def test_run_py_writes_a_complete_run_folder(tmp_path):
     assert [entry["mean_return"] for entry in history] == [float(row["mean_return"]) for row in rows]
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["final_mean_return"] == float(rows[-1]["mean_return"]) and summary["total_timesteps"] == 2000
+    provenance = summary["provenance"]  # what the results pages cite: command, commit, machine, versions
+    assert provenance["machine"]["cores"] >= 1 and provenance["versions"]["torch"] == torch.__version__
+    assert provenance["commit"] is None or len(provenance["commit"].removesuffix("-dirty")) == 40
 
     # checkpoints: last has everything needed to resume, best the policy to deploy
     last, best = run_dir / "checkpoints" / "last", run_dir / "checkpoints" / "best"

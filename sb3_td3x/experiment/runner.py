@@ -9,6 +9,10 @@ from __future__ import annotations
 
 import json
 import logging
+import os
+import platform
+import subprocess
+import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -143,6 +147,7 @@ def run_experiment(cfg: DictConfig, report: Callable[[int, float], None] | None 
             "final_std_return": final["std_return"],
             "best_mean_return": evaluation.best_mean_return,
             "wall_time_s_this_session": time.time() - started,
+            "provenance": provenance(),
         }
         (run_dir / SUMMARY_FILE).write_text(json.dumps(summary, indent=2))
         if cfg.video is not None:
@@ -170,6 +175,41 @@ def run_experiment(cfg: DictConfig, report: Callable[[int, float], None] | None 
             plot_learning_curve(
                 evaluation.history, run_dir / LEARNING_CURVE_PNG, f"{cfg.algo.name} on {cfg.env.id}, seed {cfg.seed}"
             )
+
+
+def provenance() -> dict[str, object]:
+    """Where a result came from: the command, the package's git commit (``-dirty`` with uncommitted changes; None
+    outside a git checkout), the machine and the library versions. Goes into ``summary.json``."""
+    import stable_baselines3
+
+    root = Path(__file__).resolve().parents[2]
+
+    def git(*args: str) -> str | None:
+        try:
+            done = subprocess.run(["git", "-C", str(root), *args], capture_output=True, text=True, timeout=10, check=True)
+        except (OSError, subprocess.SubprocessError):
+            return None
+        return done.stdout.strip()
+
+    commit = git("rev-parse", "HEAD")
+    if commit is not None and git("status", "--porcelain", "--untracked-files=no"):
+        commit += "-dirty"
+    cpu = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as cpuinfo:
+            cpu = next(line.split(":", 1)[1].strip() for line in cpuinfo if line.startswith("model name"))
+    except (OSError, StopIteration):
+        pass
+    return {
+        "command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]]),
+        "commit": commit,
+        "machine": {"cpu": cpu, "cores": os.cpu_count(), "torch_threads": torch.get_num_threads(), "os": platform.platform()},
+        "versions": {
+            "python": platform.python_version(),
+            "torch": torch.__version__,
+            "stable_baselines3": stable_baselines3.__version__,
+        },
+    }
 
 
 def _reporting(report: Callable[[int, float], None], checkpointer: Checkpointer) -> Callable[[dict[str, float]], None]:
