@@ -7,6 +7,12 @@
 Prints end-to-end environment steps/s of each (collection and training), the median ratio over chunks, the time per
 gradient step, the achieved GFLOP/s of the update (FLOPs counted by torch's FlopCounterMode) against the machine's
 measured matmul peak, and the replay buffer's bytes per transition. Not part of the test suite.
+
+It also prints two floors, to say how far each model is from what the machine allows at these sizes: the *matmul
+floor* of a gradient step (the matrix products of one update, recorded with their shapes and dtypes, each replayed
+and timed on its own, summed) and the bare environment step (random actions, no policy). SB3's end-to-end time per
+step divided by their sum is the speed-up a TD3 with no overhead at all (no Python, no elementwise work, no
+optimizer, no replay buffer) would reach on this machine.
 """
 
 from __future__ import annotations
@@ -24,6 +30,7 @@ import torch as th
 from stable_baselines3 import TD3
 from stable_baselines3.common.logger import configure
 from stable_baselines3.common.noise import NormalActionNoise
+from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils.flop_counter import FlopCounterMode
 
 from sb3_td3x import TD3X
@@ -82,6 +89,68 @@ def flops_per_gradient_step(model: TD3) -> float:
     return counter.get_total_flops() / delay
 
 
+class _MatmulRecorder(TorchDispatchMode):
+    """Records every matrix product (op, argument shapes, strides and dtypes) dispatched while active."""
+
+    OPS = {th.ops.aten.mm.default, th.ops.aten.addmm.default, th.ops.aten.bmm.default, th.ops.aten.baddbmm.default}
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.calls: list[tuple] = []
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        kwargs = kwargs or {}
+        if func in self.OPS:
+            signature = tuple((tuple(a.shape), a.stride(), a.dtype) if isinstance(a, th.Tensor) else a for a in args)
+            self.calls.append((func, signature, tuple(sorted(kwargs.items()))))
+        return func(*args, **kwargs)
+
+
+def matmul_floor_ms(model: TD3, reps: int = 50) -> float:
+    """Milliseconds per gradient step that the update's matrix products take when each is run alone (median of
+    ``reps`` calls per distinct product), averaged over ``policy_delay`` steps like the FLOP count."""
+    delay = model.policy_delay
+    recorder = _MatmulRecorder()
+    with recorder:
+        model.train(gradient_steps=delay, batch_size=model.batch_size)
+    device = model.device
+    total = 0.0
+    timed: dict[tuple, float] = {}
+    for func, signature, kwargs in recorder.calls:
+        key = (func, signature, kwargs)
+        if key not in timed:
+            args = [
+                th.empty_strided(a[0], a[1], dtype=a[2], device=device).normal_() if isinstance(a, tuple) and len(a) == 3
+                and isinstance(a[2], th.dtype) else a
+                for a in signature
+            ]
+            times = []
+            for _ in range(reps + 5):
+                start = time.perf_counter()
+                func(*args, **dict(kwargs))
+                if device.type == "cuda":
+                    th.cuda.synchronize()
+                times.append(time.perf_counter() - start)
+            timed[key] = statistics.median(times[5:])
+        total += timed[key]
+    return 1e3 * total / delay
+
+
+def bare_env_step_ms(env_id: str, steps: int = 3000, seed: int = 0) -> float:
+    """Milliseconds per step of the bare environment with uniformly random actions (resets included)."""
+    env = gym.make(env_id)
+    env.reset(seed=seed)
+    env.action_space.seed(seed)
+    start = time.perf_counter()
+    for _ in range(steps):
+        _, _, terminated, truncated, _ = env.step(env.action_space.sample())
+        if terminated or truncated:
+            env.reset()
+    elapsed = time.perf_counter() - start
+    env.close()
+    return 1e3 * elapsed / steps
+
+
 def bytes_per_transition(model: TD3) -> float:
     buffer = model.replay_buffer
     if hasattr(buffer, "nbytes") and callable(buffer.nbytes):
@@ -110,17 +179,25 @@ def bench_env(env_id: str, args: argparse.Namespace, td3x_kwargs: dict) -> dict:
     result = {"env": env_id, "steps_per_s": {k: statistics.median(v) for k, v in rates.items()}, "chunks": rates,
               "median_ratio": statistics.median(ratios), "ratios": ratios}
     peak = matmul_peak_gflops()
+    env_ms = bare_env_step_ms(env_id, seed=args.seed)
     for name, model in models.items():
         step_s = gradient_step_time(model, args.grad_steps)
         flops = flops_per_gradient_step(model)
         result[name] = {
+            "ms_per_step_end_to_end": 1e3 / result["steps_per_s"][name],
             "ms_per_gradient_step": 1e3 * step_s,
+            "matmul_floor_ms_per_gradient_step": matmul_floor_ms(model),
             "gflop_per_gradient_step": flops / 1e9,
             "achieved_gflops": flops / step_s / 1e9,
             "fraction_of_fp32_matmul_peak": flops / step_s / 1e9 / peak,
             "replay_bytes_per_transition": bytes_per_transition(model),
         }
     result["fp32_matmul_peak_gflops"] = peak
+    result["bare_env_ms_per_step"] = env_ms
+    # The fastest a TD3 of these sizes could go here: TD3X's matrix products alone plus the bare environment.
+    result["no_overhead_ceiling_ratio"] = result["sb3"]["ms_per_step_end_to_end"] / (
+        result["td3x"]["matmul_floor_ms_per_gradient_step"] + env_ms
+    )
     return result
 
 
@@ -163,6 +240,14 @@ def main() -> None:
                 f"{s['achieved_gflops']:6.1f} GFLOP/s = {100 * s['fraction_of_fp32_matmul_peak']:4.1f}% of the fp32 matmul "
                 f"peak ({r['fp32_matmul_peak_gflops']:.0f} GFLOP/s), replay {s['replay_bytes_per_transition']:.0f} B/transition"
             )
+            print(
+                f"        {s['ms_per_step_end_to_end']:6.2f} ms/step end to end; matmul floor "
+                f"{s['matmul_floor_ms_per_gradient_step']:.2f} ms/gradient step (the products alone)"
+            )
+        print(
+            f"  bare env step {r['bare_env_ms_per_step']:.3f} ms; a TD3 with no overhead (TD3X's matmul floor + bare env) "
+            f"would be {r['no_overhead_ceiling_ratio']:.2f}x SB3 here"
+        )
     if args.json:
         with open(args.json, "w") as f:
             json.dump({"machine": machine, "td3x_kwargs": td3x_kwargs, "args": vars(args), "results": results}, f, indent=2)
