@@ -45,6 +45,8 @@ def test_the_command_writes_a_table_and_one_plot_per_env(tmp_path, capsys):
     hopper_td3 = table[(table.env_id == "Hopper-v5") & (table.algo == "td3")].iloc[0]
     assert hopper_td3.n_runs == 3 and hopper_td3.timesteps == 3000
     assert hopper_td3.final_mean == pytest.approx(201.0) and hopper_td3.ci_low <= 201.0 <= hopper_td3.ci_high
+    assert hopper_td3.seeds == "0, 1, 2"  # each seed's final return, in seed order, for the results pages
+    assert [float(x) for x in hopper_td3.per_seed_final.split(", ")] == [200.0, 201.0, 202.0]
     assert len(table) == 3
     assert (tmp_path / "out" / "aggregate_Hopper-v5.png").is_file() and (tmp_path / "out" / "aggregate_Ant-v5.png").is_file()
     assert "| Hopper-v5 | td3 | 3 | 3000 | 201.0 |" in capsys.readouterr().out

@@ -6,7 +6,8 @@ Every run folder below the given paths (a folder with ``evaluations.csv`` and ``
 (env id, algo name); the seeds of a group are aligned on the evaluation steps they all have. The statistic over
 seeds is the mean or the interquartile mean (IQM, the mean of the middle 50%, as recommended by Agarwal et al.
 2021, "Deep RL at the Edge of the Statistical Precipice"); its 95% confidence interval is a percentile
-bootstrap over seeds. Writes ``aggregate.csv``, ``aggregate.md`` and ``aggregate_<env>.png`` to ``--out``.
+bootstrap over seeds. Writes ``aggregate.csv``, ``aggregate.md`` (with each seed's final return) and ``aggregate_<env>.png`` to
+``--out``.
 """
 
 from __future__ import annotations
@@ -87,6 +88,8 @@ def aggregate(runs: pd.DataFrame, stat: str = "mean") -> tuple[pd.DataFrame, dic
         curve = pd.DataFrame({"timesteps": table.index, stat: statistic(values, axis=-1), "ci_low": low, "ci_high": high})
         curves[(env_id, algo)] = curve
         final = curve.iloc[-1]
+        seed_of = group.drop_duplicates("run_dir").set_index("run_dir")["seed"]
+        order = sorted(table.columns, key=lambda run_dir: (seed_of[run_dir], run_dir))
         rows.append(
             {
                 "env_id": env_id,
@@ -97,6 +100,8 @@ def aggregate(runs: pd.DataFrame, stat: str = "mean") -> tuple[pd.DataFrame, dic
                 "ci_low": final["ci_low"],
                 "ci_high": final["ci_high"],
                 f"best_{stat}": curve[stat].max(),
+                "seeds": ", ".join(str(seed_of[run_dir]) for run_dir in order),
+                "per_seed_final": ", ".join(f"{table[run_dir].iloc[-1]:.1f}" for run_dir in order),
             }
         )
     return pd.DataFrame(rows), curves
