@@ -71,6 +71,8 @@ def test_sigterm_then_resume_finishes_the_same_run(tmp_path):
     for name, tensor in reference_weights.items():
         torch.testing.assert_close(resumed_weights[name], tensor, rtol=0, atol=0, msg=name)
     assert (stopped / ".hydra" / "config.yaml").is_file() and list((stopped / ".hydra").glob("resumed_*"))
+    sessions = [json.loads(line) for line in (stopped / "provenance.jsonl").read_text().splitlines()]
+    assert [session["at_step"] for session in sessions] == [0, stopped_at]  # one line per session, for the results pages
 
 
 def test_resume_takes_the_saved_config_and_plain_overrides(tmp_path):

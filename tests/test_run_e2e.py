@@ -89,6 +89,8 @@ def test_run_py_writes_a_complete_run_folder(tmp_path):
     provenance = summary["provenance"]  # what the results pages cite: command, commit, machine, versions
     assert provenance["machine"]["cores"] >= 1 and provenance["versions"]["torch"] == torch.__version__
     assert provenance["commit"] is None or len(provenance["commit"].removesuffix("-dirty")) == 40
+    sessions = [json.loads(line) for line in (run_dir / "provenance.jsonl").read_text().splitlines()]
+    assert len(sessions) == 1 and sessions[0]["at_step"] == 0 and sessions[0]["commit"] == provenance["commit"]
 
     # checkpoints: last has everything needed to resume, best the policy to deploy
     last, best = run_dir / "checkpoints" / "last", run_dir / "checkpoints" / "best"

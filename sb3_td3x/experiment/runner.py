@@ -32,6 +32,7 @@ log = logging.getLogger(__name__)
 
 CONFIG_FILE = "config.yaml"
 SUMMARY_FILE = "summary.json"
+PROVENANCE_FILE = "provenance.jsonl"
 
 
 def run_experiment(cfg: DictConfig, report: Callable[[int, float], None] | None = None) -> float:
@@ -82,6 +83,10 @@ def run_experiment(cfg: DictConfig, report: Callable[[int, float], None] | None 
                 cfg.algo.learning_starts,
                 cfg.total_timesteps,
             )
+
+        with open(run_dir / PROVENANCE_FILE, "a") as file:  # one line per session: a run may span several
+            record = {"started": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "at_step": int(model.num_timesteps), **provenance()}
+            file.write(json.dumps(record) + "\n")
 
         run_name = f"{cfg.env.name}_{cfg.algo.name}_seed{cfg.seed}"
         wandb_run = start_wandb(cfg.logger.wandb, run_dir, run_name, config) if cfg.logger.wandb is not None else None
