@@ -68,7 +68,11 @@ def load_runs(paths: list[Path]) -> pd.DataFrame:
             evaluations = pd.read_csv(csv_path)
             frames.append(
                 evaluations[["timesteps", "mean_return"]].assign(
-                    env_id=config.env.id, algo=config.algo.name, seed=config.seed, run_dir=str(run_dir)
+                    env_id=config.env.id,
+                    algo=config.algo.name,
+                    algo_class=str(config.algo.get("_target_", "")).rpartition(".")[2],
+                    seed=config.seed,
+                    run_dir=str(run_dir),
                 )
             )
     if not frames:
@@ -80,12 +84,17 @@ def aggregate(runs: pd.DataFrame, stat: str = "mean") -> tuple[pd.DataFrame, dic
     """The summary table (one row per env and algo) and, per group, the curve: statistic and CI per step."""
     statistic = STATISTICS[stat]
     rows, curves = [], {}
+    if "algo_class" not in runs:
+        runs = runs.assign(algo_class="")
     for (env_id, algo), group in runs.groupby(["env_id", "algo"], sort=True):
         # (steps, seeds), only the steps every run of the group has reached
         table = group.pivot_table(index="timesteps", columns="run_dir", values="mean_return").dropna()
         values = table.to_numpy()
         low, high = bootstrap_ci(values, statistic)
         curve = pd.DataFrame({"timesteps": table.index, stat: statistic(values, axis=-1), "ci_low": low, "ci_high": high})
+        classes = sorted(set(group["algo_class"]) - {""})
+        curve.attrs["label"] = f"{algo} ({', '.join(classes)})" if classes else algo  # e.g. "td3 (TD3X)" in plots
+        curve.attrs["per_seed"] = table  # (steps, runs): drawn as thin lines under the statistic
         curves[(env_id, algo)] = curve
         final = curve.iloc[-1]
         seed_of = group.drop_duplicates("run_dir").set_index("run_dir")["seed"]
@@ -108,15 +117,19 @@ def aggregate(runs: pd.DataFrame, stat: str = "mean") -> tuple[pd.DataFrame, dic
 
 
 def plot_curves(curves: dict[tuple[str, str], pd.DataFrame], stat: str, out_dir: Path) -> list[Path]:
-    """One PNG per environment: the statistic of every algo against steps, with its 95% CI band."""
+    """One PNG per environment: the statistic of every algo against steps, with its 95% CI band and each seed's
+    curve as a thin line."""
     paths = []
     for env_id in sorted({env_id for env_id, _ in curves}):
         fig, ax = plt.subplots(figsize=(6, 4), dpi=100)
         for (curve_env, algo), curve in sorted(curves.items()):
             if curve_env != env_id:
                 continue
-            ax.plot(curve["timesteps"], curve[stat], label=algo)
-            ax.fill_between(curve["timesteps"], curve["ci_low"], curve["ci_high"], alpha=0.2, linewidth=0)
+            (line,) = ax.plot(curve["timesteps"], curve[stat], label=curve.attrs.get("label", algo))
+            ax.fill_between(curve["timesteps"], curve["ci_low"], curve["ci_high"], alpha=0.2, linewidth=0, color=line.get_color())
+            per_seed = curve.attrs.get("per_seed")
+            if per_seed is not None and per_seed.shape[1] > 1:
+                ax.plot(per_seed.index, per_seed.to_numpy(), color=line.get_color(), alpha=0.35, linewidth=0.7)
         ax.set_xlabel("environment steps")
         ax.set_ylabel(f"evaluation return ({stat}, 95% CI)")
         ax.set_title(env_id)

@@ -1,0 +1,35 @@
+#!/usr/bin/env bash
+# Publishes the runs made by scripts/results.sh to the docs: copies each run's small records (evaluations.csv,
+# config.yaml, summary.json, provenance.jsonl; no checkpoints) to docs/assets/results/runs/, then aggregates them
+# into the tables and plots that docs/results.md shows. Runs still going are included up to the last evaluation that
+# all seeds of their group have reached.
+#
+#   bash scripts/publish_results.sh [RUNS_DIR]     # default runs/results
+set -euo pipefail
+cd "$(dirname "$0")/.."
+src=${1:-runs/results}
+dst=docs/assets/results
+python=${PYTHON:-python}
+[[ -d $src ]] || { echo "error: no folder $src; make the runs first with scripts/results.sh" >&2; exit 2; }
+
+while IFS= read -r -d '' file; do
+  relative=${file#"$src"/}
+  mkdir -p "$dst/runs/$(dirname "$relative")"
+  cp "$file" "$dst/runs/$relative"
+done < <(find "$src" -path '*/checkpoints' -prune -o -path '*/.hydra' -prune -o -type f \
+  \( -name evaluations.csv -o -name config.yaml -o -name summary.json -o -name provenance.jsonl \) -print0)
+
+aggregate() {  # OUT_NAME then run folders (those that exist)
+  local out=$1 dirs=()
+  shift
+  for dir in "$@"; do [[ -d $dir ]] && dirs+=("$dir"); done
+  if ((${#dirs[@]})); then
+    echo "== $out"
+    "$python" -m sb3_td3x.experiment.aggregate "${dirs[@]}" --out "$dst/$out"
+  fi
+}
+runs=$dst/runs
+aggregate hopper_td3x_vs_sb3 "$runs/hopper/td3" "$runs/hopper/sb3_td3"
+aggregate hopper_ablation "$runs/hopper/td3" "$runs/hopper/ddpg" "$runs/hopper/td3_no_smoothing" \
+  "$runs/hopper/td3_no_cdq" "$runs/hopper/td3_no_delay"
+aggregate td3x_mujoco "$runs/halfcheetah/td3" "$runs/hopper/td3" "$runs/walker2d/td3" "$runs/ant/td3"
