@@ -126,10 +126,11 @@ def plot_curves(curves: dict[tuple[str, str], pd.DataFrame], stat: str, out_dir:
             if curve_env != env_id:
                 continue
             (line,) = ax.plot(curve["timesteps"], curve[stat], label=curve.attrs.get("label", algo))
-            ax.fill_between(curve["timesteps"], curve["ci_low"], curve["ci_high"], alpha=0.2, linewidth=0, color=line.get_color())
+            color = line.get_color()
+            ax.fill_between(curve["timesteps"], curve["ci_low"], curve["ci_high"], alpha=0.2, linewidth=0, color=color)
             per_seed = curve.attrs.get("per_seed")
             if per_seed is not None and per_seed.shape[1] > 1:
-                ax.plot(per_seed.index, per_seed.to_numpy(), color=line.get_color(), alpha=0.35, linewidth=0.7)
+                ax.plot(per_seed.index, per_seed.to_numpy(), color=color, alpha=0.35, linewidth=0.7)
         ax.set_xlabel("environment steps")
         ax.set_ylabel(f"evaluation return ({stat}, 95% CI)")
         ax.set_title(env_id)
