@@ -6,9 +6,10 @@
 #
 #   bash scripts/publish_results.sh [RUNS_DIR]     # default runs/results
 set -euo pipefail
-cd "$(dirname "$0")/.."
-src=${1:-runs/results}
-dst=docs/assets/results
+root=$(cd "$(dirname "$0")/.." && pwd)
+src=$(realpath -m "${1:-$root/runs/results}")  # paths given by the caller are relative to the caller's folder
+dst=$(realpath -m "${RESULTS_DOCS_DIR:-$root/docs/assets/results}")
+cd "$root"
 python=${PYTHON:-python}
 [[ -d $src ]] || { echo "error: no folder $src; make the runs first with scripts/results.sh" >&2; exit 2; }
 

@@ -5,6 +5,7 @@
 #
 #   bash scripts/results.sh 200000 hopper:td3:0 hopper:sb3_td3:0 ...   # STEPS then env:algo:seed jobs
 #   JOBS=2 bash scripts/results.sh ...                                  # parallel runs (default: one per core)
+#   RUN_OVERRIDES="debug=smoke" bash scripts/results.sh ...             # extra run.py overrides for new runs
 #
 # Stop with Ctrl-C (or kill the process group): each run checkpoints on SIGINT/SIGTERM before it exits.
 set -uo pipefail
@@ -38,8 +39,9 @@ PY
     "$python" run.py resume="$dir" total_timesteps="$steps" progress_bar=false >>"$dir/stdout.log" 2>&1
   else
     echo "starting: $dir"
-    "$python" run.py env="$env" algo="$algo" seed="$seed" total_timesteps="$steps" checkpoint.freq=25000 \
-      run_dir="$dir" progress_bar=false >>"$dir/stdout.log" 2>&1
+    # shellcheck disable=SC2086  # RUN_OVERRIDES is a list of words
+    "$python" run.py env="$env" algo="$algo" seed="$seed" ${RUN_OVERRIDES:-} total_timesteps="$steps" \
+      checkpoint.freq=25000 run_dir="$dir" progress_bar=false >>"$dir/stdout.log" 2>&1
   fi
   local rc=$?
   echo "exit $rc: $dir"

@@ -1,0 +1,80 @@
+"""scripts/results.sh and scripts/publish_results.sh: the results pages' runs, built over several sittings."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pandas as pd
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def results_sh(tmp_path: Path, *args: str) -> subprocess.CompletedProcess:
+    env = {
+        **os.environ,
+        "PYTHON": sys.executable,
+        "JOBS": "2",
+        "RESULTS_DIR": str(tmp_path / "runs"),
+        "RUN_OVERRIDES": "debug=smoke eval.freq=300 logger=none",
+    }
+    return subprocess.run(
+        ["bash", str(REPO / "scripts" / "results.sh"), *args], cwd=REPO, env=env, capture_output=True, text=True, timeout=600
+    )
+
+
+def final_step(run_dir: Path) -> int:
+    return int(pd.read_csv(run_dir / "evaluations.csv")["timesteps"].iloc[-1])
+
+
+def test_runs_start_skip_when_done_and_resume_to_more_steps(tmp_path):
+    td3x, sb3 = tmp_path / "runs" / "pendulum" / "td3" / "seed0", tmp_path / "runs" / "pendulum" / "sb3_td3" / "seed0"
+    done = results_sh(tmp_path, "600", "pendulum:td3:0", "pendulum:sb3_td3:0")
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert f"starting: {td3x}" in done.stdout and f"starting: {sb3}" in done.stdout
+    assert final_step(td3x) == final_step(sb3) == 600
+    assert "stable_baselines3.TD3" in (sb3 / "config.yaml").read_text()
+
+    again = results_sh(tmp_path, "600", "pendulum:td3:0")
+    assert again.returncode == 0 and f"done already: {td3x}" in again.stdout
+
+    longer = results_sh(tmp_path, "900", "pendulum:td3:0")
+    assert longer.returncode == 0, longer.stdout + longer.stderr
+    assert f"resuming: {td3x}" in longer.stdout and final_step(td3x) == 900
+    sessions = [json.loads(line) for line in (td3x / "provenance.jsonl").read_text().splitlines()]
+    assert [session["at_step"] for session in sessions] == [0, 600]
+
+
+def test_bad_arguments_are_refused_with_a_message(tmp_path):
+    steps = results_sh(tmp_path, "lots", "pendulum:td3:0")
+    assert steps.returncode == 2 and "STEPS must be a whole number" in steps.stderr
+    job = results_sh(tmp_path, "600", "pendulum-td3-0")
+    assert job.returncode != 0 and "is not env:algo:seed" in job.stderr
+    assert not (tmp_path / "runs").exists() or not any((tmp_path / "runs").rglob("evaluations.csv"))
+
+
+def test_publish_copies_the_records_and_aggregates_them(tmp_path):
+    jobs = ["hopper:td3:0", "hopper:td3:1", "hopper:sb3_td3:0", "hopper:sb3_td3:1"]
+    assert results_sh(tmp_path, "600", *jobs).returncode == 0
+    docs = tmp_path / "docs"
+    out = subprocess.run(
+        ["bash", str(REPO / "scripts" / "publish_results.sh"), str(tmp_path / "runs")],
+        cwd=tmp_path,  # the script works from the repository root whatever the caller's folder
+        env={**os.environ, "PYTHON": sys.executable, "RESULTS_DOCS_DIR": str(docs)},
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert out.returncode == 0, out.stdout + out.stderr
+    for algo in ("td3", "sb3_td3"):
+        for seed in (0, 1):
+            assert sorted(path.name for path in (docs / "runs" / "hopper" / algo / f"seed{seed}").iterdir()) == [
+                "config.yaml", "evaluations.csv", "provenance.jsonl", "summary.json",
+            ]  # fmt: skip: the small records only, no checkpoints
+    table = pd.read_csv(docs / "hopper_td3x_vs_sb3" / "aggregate.csv")
+    assert sorted(table.algo) == ["sb3_td3", "td3"] and set(table.n_runs) == {2} and set(table.timesteps) == {600}
+    assert (docs / "hopper_td3x_vs_sb3" / "aggregate_Hopper-v5.png").is_file()
+    assert (docs / "hopper_ablation" / "aggregate.csv").is_file() and (docs / "td3x_mujoco" / "aggregate.csv").is_file()
