@@ -27,6 +27,7 @@ aggregate() {  # OUT_NAME then run folders (those that exist)
   if ((${#dirs[@]})); then
     echo "== $out"
     "$python" -m sb3_td3x.experiment.aggregate "${dirs[@]}" --out "$dst/$out"
+    rm -f "$dst/$out/aggregate.md"  # printed above and kept as aggregate.csv; a .md under docs/ would be a page
   fi
 }
 runs=$dst/runs

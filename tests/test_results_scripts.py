@@ -77,4 +77,5 @@ def test_publish_copies_the_records_and_aggregates_them(tmp_path):
     table = pd.read_csv(docs / "hopper_td3x_vs_sb3" / "aggregate.csv")
     assert sorted(table.algo) == ["sb3_td3", "td3"] and set(table.n_runs) == {2} and set(table.timesteps) == {600}
     assert (docs / "hopper_td3x_vs_sb3" / "aggregate_Hopper-v5.png").is_file()
+    assert not list(docs.rglob("*.md"))  # under docs/, a Markdown file would be a page of the site
     assert (docs / "hopper_ablation" / "aggregate.csv").is_file() and (docs / "td3x_mujoco" / "aggregate.csv").is_file()
