@@ -5,6 +5,8 @@
 # all seeds of their group have reached.
 #
 #   bash scripts/publish_results.sh [RUNS_DIR]     # default runs/results
+#
+# Then scripts/results_tables.py rewrites the tables of docs/results.md (RESULTS_PAGE; empty: leave the page alone).
 set -euo pipefail
 root=$(cd "$(dirname "$0")/.." && pwd)
 src=$(realpath -m "${1:-$root/runs/results}")  # paths given by the caller are relative to the caller's folder
@@ -35,3 +37,8 @@ aggregate hopper_td3x_vs_sb3 "$runs/hopper/td3" "$runs/hopper/sb3_td3"
 aggregate hopper_ablation "$runs/hopper/td3" "$runs/hopper/ddpg" "$runs/hopper/td3_no_smoothing" \
   "$runs/hopper/td3_no_cdq" "$runs/hopper/td3_no_delay"
 aggregate td3x_mujoco "$runs/halfcheetah/td3" "$runs/hopper/td3" "$runs/walker2d/td3" "$runs/ant/td3"
+
+page=${RESULTS_PAGE-$root/docs/results.md}
+if [[ -n $page ]]; then
+  "$python" scripts/results_tables.py --docs-dir "$dst" --page "$page"
+fi

@@ -60,10 +60,12 @@ def test_publish_copies_the_records_and_aggregates_them(tmp_path):
     jobs = ["hopper:td3:0", "hopper:td3:1", "hopper:sb3_td3:0", "hopper:sb3_td3:1"]
     assert results_sh(tmp_path, "600", *jobs).returncode == 0
     docs = tmp_path / "docs"
+    page = tmp_path / "results.md"
+    page.write_text("# Results\n<!-- ABLATION -->\nold\n<!-- /ABLATION -->\ntext\n<!-- MUJOCO -->\n<!-- /MUJOCO -->\n")
     out = subprocess.run(
         ["bash", str(REPO / "scripts" / "publish_results.sh"), str(tmp_path / "runs")],
         cwd=tmp_path,  # the script works from the repository root whatever the caller's folder
-        env={**os.environ, "PYTHON": sys.executable, "RESULTS_DOCS_DIR": str(docs)},
+        env={**os.environ, "PYTHON": sys.executable, "RESULTS_DOCS_DIR": str(docs), "RESULTS_PAGE": str(page)},
         capture_output=True,
         text=True,
         timeout=300,
@@ -79,3 +81,21 @@ def test_publish_copies_the_records_and_aggregates_them(tmp_path):
     assert (docs / "hopper_td3x_vs_sb3" / "aggregate_Hopper-v5.png").is_file()
     assert not list(docs.rglob("*.md"))  # under docs/, a Markdown file would be a page of the site
     assert (docs / "hopper_ablation" / "aggregate.csv").is_file() and (docs / "td3x_mujoco" / "aggregate.csv").is_file()
+    # The page's tables are rewritten from the aggregates and the runs' records, between their markers
+    lines = page.read_text().splitlines()
+    assert "old" not in lines and "text" in lines
+    td3 = next(line for line in lines if line.startswith("| TD3 (`td3`)"))
+    assert "| 0: 600, 1: 600, 2: not started | 600 |" in td3, td3
+    assert next(line for line in lines if line.startswith("| DDPG")).count("not started") == 3
+    hopper = next(line for line in lines if line.startswith("| Hopper-v5"))
+    assert hopper.split("|")[3].strip() == "600" and hopper.split("|")[5].strip().count(",") == 1  # two seeds' finals
+    assert "| Ant-v5 | 0: not started, 1: not started, 2: not started | | | | |" in lines
+
+
+def test_results_tables_refuse_a_page_without_markers(tmp_path):
+    page = tmp_path / "results.md"
+    page.write_text("# Results\nno markers\n")
+    out = subprocess.run([sys.executable, str(REPO / "scripts" / "results_tables.py"), "--docs-dir", str(tmp_path),
+                          "--page", str(page)], capture_output=True, text=True)
+    assert out.returncode == 2 and "has no <!-- ABLATION -->" in out.stderr and "Traceback" not in out.stderr
+    assert page.read_text() == "# Results\nno markers\n"
