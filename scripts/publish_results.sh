@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # Publishes the runs made by scripts/results.sh to the docs: copies each run's small records (evaluations.csv,
 # config.yaml, summary.json, provenance.jsonl; no checkpoints) to docs/assets/results/runs/, then aggregates them
-# into the tables and plots that docs/results.md shows. Runs still going are included up to the last evaluation that
-# all seeds of their group have reached.
+# into the tables and plots that docs/results.md shows. The finished seeds of a group (those with a summary.json) are
+# aggregated; a group with no finished seed yet is aggregated as far as all its seeds have got.
 #
 #   bash scripts/publish_results.sh [RUNS_DIR]     # default runs/results
 #
@@ -22,10 +22,15 @@ while IFS= read -r -d '' file; do
 done < <(find "$src" -path '*/checkpoints' -prune -o -path '*/.hydra' -prune -o -type f \
   \( -name evaluations.csv -o -name config.yaml -o -name summary.json -o -name provenance.jsonl \) -print0)
 
-aggregate() {  # OUT_NAME then run folders (those that exist)
-  local out=$1 dirs=()
+aggregate() {  # OUT_NAME then group folders <env>/<algo> (those that exist)
+  local out=$1 dirs=() group seed finished
   shift
-  for dir in "$@"; do [[ -d $dir ]] && dirs+=("$dir"); done
+  for group in "$@"; do
+    [[ -d $group ]] || continue
+    finished=()
+    for seed in "$group"/seed*/; do [[ -f $seed/summary.json ]] && finished+=("${seed%/}"); done
+    if ((${#finished[@]})); then dirs+=("${finished[@]}"); else dirs+=("$group"); fi
+  done
   if ((${#dirs[@]})); then
     echo "== $out"
     "$python" -m sb3_td3x.experiment.aggregate "${dirs[@]}" --out "$dst/$out"

@@ -1,8 +1,9 @@
 """Fill the tables of docs/results.md from the published results (run by scripts/publish_results.sh).
 
 Each table sits between two markers of the page, ``<!-- NAME -->`` and ``<!-- /NAME -->``, and is rewritten from
-``<results docs dir>/<group>/aggregate.csv`` (what ``sb3_td3x.experiment.aggregate`` wrote) and the runs' records
-under ``<results docs dir>/runs/<env>/<algo>/seed<S>/``, which say how far each seed has got. Nothing in the tables
+``<results docs dir>/<group>/aggregate.csv`` (what ``sb3_td3x.experiment.aggregate`` wrote: the finished seeds of
+each algorithm, or all its seeds as far as they have all got while none has finished) and the runs' records under
+``<results docs dir>/runs/<env>/<algo>/seed<S>/``, which say how far each seed has got. Nothing in the tables
 is typed by hand, so publishing again after more runs brings the page up to date.
 
     python scripts/results_tables.py [--docs-dir docs/assets/results] [--page docs/results.md] [--seeds 0 1 2]
@@ -27,7 +28,7 @@ ABLATION = {  # algo preset -> the row's name, in the paper's order
 }
 MUJOCO = {"halfcheetah": "HalfCheetah-v5", "hopper": "Hopper-v5", "walker2d": "Walker2d-v5", "ant": "Ant-v5"}
 HEADER = [
-    "| {first} | seeds: steps reached | steps (all seeds) | final return, mean (95% CI) | per seed | best mean |",
+    "| {first} | seeds: steps reached | steps | final return, mean (95% CI) | final return per seed | best mean |",
     "|---|---|---|---|---|---|",
 ]
 
@@ -59,7 +60,9 @@ def row(name: str, aggregate: pd.DataFrame, env_id: str, algo: str, runs: Path, 
         return f"| {name} | {progress} | | | | |"
     r = found.iloc[0]
     final = f"{r.final_mean:.1f} ({r.ci_low:.1f} to {r.ci_high:.1f})" if r.n_runs > 1 else f"{r.final_mean:.1f} (one seed)"
-    return f"| {name} | {progress} | {int(r.timesteps):,} | {final} | {r.per_seed_final} | {r.best_mean:.1f} |"
+    seeds_aggregated = str(r.seeds).split(", ")
+    per_seed = ", ".join(f"{seed}: {value}" for seed, value in zip(seeds_aggregated, str(r.per_seed_final).split(", ")))
+    return f"| {name} | {progress} | {int(r.timesteps):,} | {final} | {per_seed} | {r.best_mean:.1f} |"
 
 
 def read_aggregate(path: Path) -> pd.DataFrame:

@@ -59,6 +59,12 @@ def test_bad_arguments_are_refused_with_a_message(tmp_path):
 def test_publish_copies_the_records_and_aggregates_them(tmp_path):
     jobs = ["hopper:td3:0", "hopper:td3:1", "hopper:sb3_td3:0", "hopper:sb3_td3:1"]
     assert results_sh(tmp_path, "600", *jobs).returncode == 0
+    # A seed still running (no summary.json yet): shown with its progress, not aggregated with the finished ones
+    running = tmp_path / "runs" / "hopper" / "td3" / "seed2"
+    running.mkdir()
+    (running / "config.yaml").write_text((tmp_path / "runs" / "hopper" / "td3" / "seed0" / "config.yaml").read_text())
+    pd.read_csv(tmp_path / "runs" / "hopper" / "td3" / "seed0" / "evaluations.csv").iloc[:1].to_csv(
+        running / "evaluations.csv", index=False)
     docs = tmp_path / "docs"
     page = tmp_path / "results.md"
     page.write_text("# Results\n<!-- ABLATION -->\nold\n<!-- /ABLATION -->\ntext\n<!-- MUJOCO -->\n<!-- /MUJOCO -->\n")
@@ -85,7 +91,7 @@ def test_publish_copies_the_records_and_aggregates_them(tmp_path):
     lines = page.read_text().splitlines()
     assert "old" not in lines and "text" in lines
     td3 = next(line for line in lines if line.startswith("| TD3 (`td3`)"))
-    assert "| 0: 600, 1: 600, 2: not started | 600 |" in td3, td3
+    assert "| 0: 600, 1: 600, 2: 300 of 600 | 600 |" in td3, td3
     assert next(line for line in lines if line.startswith("| DDPG")).count("not started") == 3
     hopper = next(line for line in lines if line.startswith("| Hopper-v5"))
     assert hopper.split("|")[3].strip() == "600" and hopper.split("|")[5].strip().count(",") == 1  # two seeds' finals
