@@ -30,18 +30,27 @@ def small(**kwargs) -> TD3X:
     return model
 
 
+def feed(model: TD3X, data: list[ReplayBufferSamples]) -> None:
+    """Make ``model`` train on ``data``, batch after batch, from the same random state as any other model fed so."""
+    it = iter(data)
+    model.sample_batch = lambda batch_size: next(it)
+    th.manual_seed(0)
+
+
+def assert_same_weights(reference: TD3X, model: TD3X, **tolerance) -> None:
+    for (name, a), b in zip(reference.policy.state_dict().items(), model.policy.state_dict().values()):
+        th.testing.assert_close(b, a, msg=name, **tolerance)
+
+
 def test_bf16_keeps_fp32_weights_and_follows_fp32_closely():
     fp32, bf16 = small(), small(bf16=True)
     bf16.policy.load_state_dict(fp32.policy.state_dict())
     data = batches(4)
     for model in (fp32, bf16):
-        it = iter(data)
-        model.sample_batch = lambda batch_size, it=it: next(it)
-        th.manual_seed(0)
+        feed(model, data)
         model.train(gradient_steps=4, batch_size=32)
     assert all(p.dtype == th.float32 for p in bf16.policy.parameters())
-    for (name, a), b in zip(fp32.policy.state_dict().items(), bf16.policy.state_dict().values()):
-        th.testing.assert_close(b, a, rtol=0.05, atol=2e-3, msg=name)
+    assert_same_weights(fp32, bf16, rtol=0.05, atol=2e-3)
     assert np.isfinite(bf16.logger.name_to_value["train/critic_loss"])
 
 
@@ -52,16 +61,13 @@ def test_compiled_update_matches_eager_steps():
     compiled.policy.load_state_dict(eager.policy.state_dict())
     data = batches(6)
     for model in (eager, compiled):
-        it = iter(data)
-        model.sample_batch = lambda batch_size, it=it: next(it)
-        th.manual_seed(0)
+        feed(model, data)
         # Random ops as in eager mode (Inductor draws its own random numbers otherwise)
         with th._inductor.config.patch(fallback_random=True):
             for progress in (1.0, 0.5, 0.25):  # the learning rate changes between train() calls
                 model._current_progress_remaining = progress
                 model.train(gradient_steps=2, batch_size=32)
-    for (name, a), b in zip(eager.policy.state_dict().items(), compiled.policy.state_dict().values()):
-        th.testing.assert_close(b, a, rtol=1e-4, atol=1e-5, msg=name)
+    assert_same_weights(eager, compiled, rtol=1e-4, atol=1e-5)
     assert compiled.logger.name_to_value["train/critic_loss"] == pytest.approx(
         eager.logger.name_to_value["train/critic_loss"], rel=1e-4)
 
