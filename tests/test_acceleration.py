@@ -129,8 +129,7 @@ def test_graphed_step_logic_matches_eager_steps():
     graphed.train(gradient_steps=6, batch_size=32)
     assert sorted(probe._graphs) == [(32, False), (32, True)]
     assert isinstance(graphed.critic.optimizer.param_groups[0]["lr"], th.Tensor)
-    for (name, a), b in zip(eager.policy.state_dict().items(), graphed.policy.state_dict().values()):
-        th.testing.assert_close(b, a, rtol=1e-5, atol=1e-6, msg=name)
+    assert_same_weights(eager, graphed, rtol=1e-5, atol=1e-6)
     for key in ("train/critic_loss", "train/actor_loss", "train/q1_mean", "train/target_q_mean"):
         assert graphed.logger.name_to_value[key] == pytest.approx(eager_logged[key], rel=1e-5), key
 
