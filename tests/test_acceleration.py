@@ -24,8 +24,9 @@ def batches(n: int, seed: int = 0) -> list[ReplayBufferSamples]:
     ]
 
 
-def small(**kwargs) -> TD3X:
-    model = TD3X("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(net_arch=[32, 32]), learning_starts=0, seed=0, **kwargs)
+def small(policy_kwargs: dict | None = None, cls: type[TD3X] = TD3X, **kwargs) -> TD3X:
+    policy_kwargs = {"net_arch": [32, 32], **(policy_kwargs or {})}
+    model = cls("MlpPolicy", "Pendulum-v1", policy_kwargs=policy_kwargs, learning_starts=0, seed=0, **kwargs)
     model.set_logger(configure(None, []))
     return model
 
@@ -54,22 +55,81 @@ def test_bf16_keeps_fp32_weights_and_follows_fp32_closely():
     assert np.isfinite(bf16.logger.name_to_value["train/critic_loss"])
 
 
-def test_compiled_update_matches_eager_steps():
-    """compile_update=True computes the same updates as the eager hooks (to float rounding), and follows a schedule."""
-    eager = small(learning_rate=lambda progress: 1e-3 * progress)
-    compiled = small(learning_rate=lambda progress: 1e-3 * progress, compile_update=True)
+def train_fed(model: TD3X, data: list[ReplayBufferSamples], progresses=(1.0, 0.5, 0.25)) -> None:
+    feed(model, data)
+    # Random ops as in eager mode (Inductor draws its own random numbers otherwise)
+    with th._inductor.config.patch(fallback_random=True):
+        for progress in progresses:  # the learning rate changes between train() calls
+            model._current_progress_remaining = progress
+            model.train(gradient_steps=2, batch_size=32)
+
+
+class HuberTD3X(TD3X):
+    """A loss hook overridden, as in the docs' extending page: the compiled update must use it too."""
+
+    def critic_loss(self, current_q, target_q):
+        target = target_q.unsqueeze(0).expand_as(current_q)
+        loss = th.nn.functional.smooth_l1_loss(current_q, target, reduction="none").mean(dim=(1, 2)).sum()
+        return loss, {"critic_loss": loss.detach()}
+
+
+@pytest.mark.parametrize("variant", ["adam", "adamw_weight_decay", "huber_critic_loss"])
+def test_compiled_update_matches_eager_steps(variant):
+    """compile_update=True computes the same updates as the eager hooks (to float rounding), overridden loss hooks
+    included, follows a learning-rate schedule without recompiling (one graph with the actor update, one without),
+    and has no graph break."""
+    kwargs = {"learning_rate": lambda progress: 1e-3 * progress}
+    if variant == "huber_critic_loss":
+        kwargs["cls"] = HuberTD3X
+    if variant == "adamw_weight_decay":
+        kwargs["policy_kwargs"] = dict(optimizer_class=th.optim.AdamW, optimizer_kwargs=dict(weight_decay=0.05))
+    eager = small(**kwargs)
+    compiled = small(compile_update=True, **kwargs)
     compiled.policy.load_state_dict(eager.policy.state_dict())
     data = batches(6)
-    for model in (eager, compiled):
-        feed(model, data)
-        # Random ops as in eager mode (Inductor draws its own random numbers otherwise)
-        with th._inductor.config.patch(fallback_random=True):
-            for progress in (1.0, 0.5, 0.25):  # the learning rate changes between train() calls
-                model._current_progress_remaining = progress
-                model.train(gradient_steps=2, batch_size=32)
+    train_fed(eager, data)
+    counters = th._dynamo.utils.counters
+    graphs_before, breaks_before = counters["stats"]["unique_graphs"], sum(counters["graph_break"].values())
+    train_fed(compiled, data)
+    assert counters["stats"]["unique_graphs"] - graphs_before == 2
+    assert sum(counters["graph_break"].values()) == breaks_before
     assert_same_weights(eager, compiled, rtol=1e-4, atol=1e-5)
     assert compiled.logger.name_to_value["train/critic_loss"] == pytest.approx(
         eager.logger.name_to_value["train/critic_loss"], rel=1e-4)
+
+
+def test_compiled_update_keeps_the_optimizer_state_usable_eagerly():
+    """The compiled update steps the optimizers' own states: switching compile_update off mid-run goes on exactly
+    as an eager run would (and so do saving and loading them)."""
+    # No smoothing noise: each train_fed call reseeds the RNG, which the eager run only does once.
+    eager, switched = small(target_policy_smoothing=False), small(target_policy_smoothing=False, compile_update=True)
+    switched.policy.load_state_dict(eager.policy.state_dict())
+    data = batches(8)
+    train_fed(eager, data, progresses=(1.0, 1.0, 1.0, 1.0))
+    train_fed(switched, data[:4], progresses=(1.0, 1.0))
+    assert switched.critic.optimizer.state_dict()["state"][0]["step"].item() == 4
+    switched.compile_update, switched._step_fn = False, None
+    switched.critic.optimizer.load_state_dict(switched.critic.optimizer.state_dict())
+    train_fed(switched, data[4:], progresses=(1.0, 1.0))
+    assert_same_weights(eager, switched, rtol=1e-4, atol=1e-5)
+
+
+def test_compile_update_falls_back_with_a_warning_when_the_optimizer_step_is_overridden():
+    """An overridden optimize_critic cannot be made functional: the update is compiled as it is, and still used."""
+
+    class ClippedTD3X(TD3X):
+        def optimize_critic(self, loss):
+            self.critic.optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            self.clipped = True
+            self.critic.optimizer.step()
+
+    model = ClippedTD3X("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(net_arch=[8]), learning_starts=0, seed=0,
+                        batch_size=4, compile_update=True)
+    model.set_logger(configure(None, []))
+    with pytest.warns(UserWarning, match="optimize_critic is overridden"):
+        model.learn(3)
+    assert model.clipped
 
 
 def test_cuda_graph_needs_cuda():

@@ -30,8 +30,172 @@ def autocast_context(device: th.device, enabled: bool, cache: bool = True) -> co
 
 
 def compiled_step(update: Callable[[Any, bool], Infos]) -> Callable[[Any, bool], Infos]:
-    """``torch.compile`` of the update from a batch (forward, backward, optimizer steps, Polyak updates)."""
+    """``torch.compile`` of the update from a batch as it is (forward, backward, optimizer steps, Polyak updates).
+
+    Dynamo breaks the graph at every ``loss.backward()`` and around the optimizer, so the backward passes stay eager:
+    the fallback of :class:`FunctionalCompiledUpdate` when a model's update cannot be made functional.
+    """
     return th.compile(update, dynamic=False)
+
+
+class _Call(th.nn.Module):
+    """Runs a closure with the policy's parameters swapped, through ``torch.func.functional_call``."""
+
+    def __init__(self, policy: th.nn.Module):
+        super().__init__()
+        self.policy = policy
+
+    def forward(self, fn: Callable[[], Any]) -> Any:
+        return fn()
+
+
+class FunctionalCompiledUpdate:
+    """
+    ``compile_update=True``: steps 5 to 15 as one compiled graph per value of ``update_actor``.
+
+    ``loss.backward()`` splits a compiled update into many graphs with eager backward passes between them, which on a
+    CPU is slower than no compilation at all. Here the gradients come from ``torch.func.grad_and_value`` instead, so
+    Dynamo traces forward, backward, optimizer and Polyak updates into one graph:
+
+    - the losses are the model's own hooks (``compute_target_q``, ``current_q_values``, ``critic_loss``,
+      ``actor_loss``...), evaluated with the parameters swapped in by ``torch.func.functional_call``, so overriding
+      them works as in eager mode;
+    - steps 12 and 13's optimizer steps are Adam's (or AdamW's) update rule, written with ``torch._foreach`` ops on
+      the optimizer's own state (``exp_avg``, ``exp_avg_sq``, ``step``), so saving, loading and switching
+      ``compile_update`` off keep working;
+    - the learning rates are 0-d tensors refreshed before each call: a schedule does not recompile.
+
+    Use :meth:`why_not` to know whether a model qualifies (Adam or AdamW with one parameter group, no AMSGrad, no
+    batch norm, ``optimize_critic``, ``optimize_actor`` and ``update_from_batch`` not overridden).
+    """
+
+    def __init__(self, model: TD3X):
+        self.model = model
+        self._call = _Call(model.policy)
+        names = {id(p): name for name, p in self._call.named_parameters(remove_duplicate=False)}
+        self._optimizers = (model.critic.optimizer, model.actor.optimizer)
+        self._params = [list(opt.param_groups[0]["params"]) for opt in self._optimizers]
+        self._names = [[names[id(p)] for p in params] for params in self._params]
+        self._lrs = [th.tensor(0.0, device=model.device) for _ in self._optimizers]
+        self._all_params = list(self._call.parameters())
+        self._hyperparameters: list[tuple[float, float, float, float, bool]] = []
+        self._states: list[tuple[list[th.Tensor], list[th.Tensor], list[th.Tensor]]] = []
+        # One compiled function per value of update_actor: each has one graph, so no failed guard check per call.
+        self._critic_update = th.compile(lambda batch: self._update(batch, False), dynamic=False)
+        self._full_update = th.compile(lambda batch: self._update(batch, True), dynamic=False)
+
+    @staticmethod
+    def why_not(model: TD3X) -> str | None:
+        """Why ``model``'s update cannot be made functional, or ``None`` when it can."""
+        from sb3_td3x.td3x.td3x import TD3X
+
+        for hook in ("update_from_batch", "optimize_critic", "optimize_actor"):
+            if getattr(type(model), hook) is not getattr(TD3X, hook):
+                return f"{hook} is overridden"
+        for optimizer in (model.critic.optimizer, model.actor.optimizer):
+            if type(optimizer) not in (th.optim.Adam, th.optim.AdamW):
+                return f"the optimizer is {type(optimizer).__name__}, not Adam or AdamW"
+            if len(optimizer.param_groups) != 1:
+                return "an optimizer has several parameter groups"
+            group = optimizer.param_groups[0]
+            if group.get("amsgrad") or group.get("maximize") or group.get("differentiable"):
+                return "the optimizer uses amsgrad, maximize or differentiable"
+        if any(True for _ in model.policy.buffers()):
+            return "the policy has buffers (batch norm)"
+        return None
+
+    def __call__(self, batch: Any, update_actor: bool) -> Infos:
+        # Everything the graph reads from the optimizers is gathered here, outside it: Dynamo then guards on these
+        # lists and numbers, not on the optimizers' dicts (whose learning rates change with a schedule).
+        self._hyperparameters, self._states = [], []
+        for optimizer, params, lr in zip(self._optimizers, self._params, self._lrs):
+            group = optimizer.param_groups[0]
+            lr.fill_(group["lr"])
+            beta1, beta2 = group["betas"]
+            self._hyperparameters.append(
+                (float(beta1), float(beta2), float(group["eps"]), float(group["weight_decay"]),
+                 isinstance(optimizer, th.optim.AdamW))
+            )
+            states = []
+            for p in params:
+                if not optimizer.state[p]:  # as Adam's first step would create them
+                    optimizer.state[p] = {
+                        "step": th.zeros((), dtype=th.float32, device=p.device),
+                        "exp_avg": th.zeros_like(p, memory_format=th.preserve_format),
+                        "exp_avg_sq": th.zeros_like(p, memory_format=th.preserve_format),
+                    }
+                states.append(optimizer.state[p])
+            self._states.append(tuple([state[key] for state in states] for key in ("step", "exp_avg", "exp_avg_sq")))
+        # torch.func differentiates without requires_grad; switched off, it also makes the hooks' ``frozen()`` a no-op
+        # (requires_grad_ cannot be called inside a torch.func transform).
+        trainable = [p for p in self._all_params if p.requires_grad]
+        for p in trainable:
+            p.requires_grad_(False)
+        try:
+            return self._full_update(batch) if update_actor else self._critic_update(batch)
+        finally:
+            for p in trainable:
+                p.requires_grad_(True)
+
+    def _grads(self, which: int, loss_fn: Callable[[], tuple[th.Tensor, dict[str, th.Tensor]]]) -> Any:
+        names = self._names[which]
+
+        def loss_of(values: tuple[th.Tensor, ...]) -> tuple[th.Tensor, dict[str, th.Tensor]]:
+            return th.func.functional_call(self._call, dict(zip(names, values)), (loss_fn,), strict=False)
+
+        grads, (_, info) = th.func.grad_and_value(loss_of, has_aux=True)(tuple(self._params[which]))
+        return list(grads), info
+
+    @th.no_grad()
+    def _adam_step(self, which: int, grads: list[th.Tensor]) -> None:
+        """Adam's update rule (torch.optim.Adam, non-capturable), in place on the parameters and the states."""
+        params, lr = self._params[which], self._lrs[which]
+        beta1, beta2, eps, weight_decay, decoupled = self._hyperparameters[which]
+        steps, exp_avgs, exp_avg_sqs = self._states[which]
+        if weight_decay != 0:
+            if decoupled:  # AdamW
+                th._foreach_mul_(params, 1 - lr * weight_decay)
+            else:
+                grads = th._foreach_add(grads, params, alpha=weight_decay)
+        th._foreach_add_(steps, 1)
+        # The parameters of one optimizer always step together: their counters are equal.
+        bias_correction1 = 1 - beta1 ** steps[0]
+        bias_correction2 = 1 - beta2 ** steps[0]
+        th._foreach_lerp_(exp_avgs, grads, 1 - beta1)
+        th._foreach_mul_(exp_avg_sqs, beta2)
+        th._foreach_addcmul_(exp_avg_sqs, grads, grads, 1 - beta2)
+        denominators = th._foreach_sqrt(exp_avg_sqs)
+        th._foreach_div_(denominators, bias_correction2.sqrt())
+        th._foreach_add_(denominators, eps)
+        updates = th._foreach_div(exp_avgs, denominators)
+        th._foreach_mul_(updates, -lr / bias_correction1)
+        th._foreach_add_(params, updates)
+
+    def _update(self, batch: Any, update_actor: bool) -> Infos:
+        """``TD3X.update_from_batch`` with the backward passes and optimizer steps made functional."""
+        model = self.model
+        with model._autocast():
+            target_q = model.compute_target_q(batch)  # steps 5-9
+
+        def critic_loss() -> tuple[th.Tensor, dict[str, th.Tensor]]:
+            with model._autocast():
+                current_q = model.current_q_values(batch)  # step 10
+            return model.critic_loss(current_q, target_q)  # step 11
+
+        grads, critic_info = self._grads(0, critic_loss)
+        self._adam_step(0, grads)  # step 12
+        if not update_actor:
+            return critic_info, {}
+
+        def actor_loss() -> tuple[th.Tensor, dict[str, th.Tensor]]:
+            with model._autocast():
+                return model.actor_loss(batch.observations)  # step 13
+
+        grads, actor_info = self._grads(1, actor_loss)
+        self._adam_step(1, grads)
+        model.update_critic_target()  # step 15
+        model.update_actor_target()  # step 14
+        return critic_info, actor_info
 
 
 def cuda_graph_capture(fn: Callable[[], Infos], pool: Any | None) -> tuple[Callable[[], None], Infos, Any]:

@@ -20,7 +20,12 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, ReplayB
 from stable_baselines3.common.utils import FloatSchedule, get_parameters_by_name, update_learning_rate
 
 from sb3_td3x.common.buffers import TensorReplayBuffer
-from sb3_td3x.td3x.acceleration import GraphedGradientStep, autocast_context, compiled_step
+from sb3_td3x.td3x.acceleration import (
+    FunctionalCompiledUpdate,
+    GraphedGradientStep,
+    autocast_context,
+    compiled_step,
+)
 from sb3_td3x.td3x.policies import CnnPolicy, MlpPolicy, MultiInputPolicy, TD3XPolicy
 
 SelfTD3X = TypeVar("SelfTD3X", bound="TD3X")
@@ -421,7 +426,15 @@ class TD3X(OffPolicyAlgorithm):
                 self._step_fn = GraphedGradientStep(self)
             elif self.compile_update:
                 # Sampling stays eager: the buffer's size changes at every step.
-                update = compiled_step(self.update_from_batch)
+                reason = FunctionalCompiledUpdate.why_not(self)
+                if reason is None:
+                    update = FunctionalCompiledUpdate(self)
+                else:
+                    warnings.warn(
+                        f"compile_update=True: {reason}, so the update is compiled as it is, with eager backward "
+                        "passes (slower than the functional compiled update, and often slower than no compilation)."
+                    )
+                    update = compiled_step(self.update_from_batch)
                 self._step_fn = lambda batch_size, update_actor: update(self.sample_batch(batch_size), update_actor)
             else:
                 self._step_fn = self.gradient_step
