@@ -124,7 +124,9 @@ class TD3X(OffPolicyAlgorithm):
         first critic target only, as DDPG does
     :param bf16: opt-in: run the forward passes of the update under bf16 autocast (AMX on recent x86 CPUs,
         tensor cores on GPUs), with fp32 weights, optimizer states and losses
-    :param compile_update: opt-in: ``torch.compile`` the whole gradient step (the first steps pay the compilation)
+    :param compile_update: opt-in: ``torch.compile`` steps 5 to 15 into one graph per kind of step, with the gradients
+        from ``torch.func`` and Adam's update rule on the optimizers' own states (see
+        :class:`~sb3_td3x.td3x.acceleration.FunctionalCompiledUpdate`); the first steps pay the compilation
     :param cuda_graph: opt-in, CUDA only: capture the whole gradient step, sampling included, in CUDA graphs and
         replay them (no kernel-launch or Python overhead per step)
     :param _init_setup_model: Whether or not to build the network at the creation of the instance
