@@ -37,11 +37,12 @@ aggregate() {  # OUT_NAME then group folders <env>/<algo> (those that exist)
     rm -f "$dst/$out/aggregate.md"  # printed above and kept as aggregate.csv; a .md under docs/ would be a page
   fi
 }
-runs=$dst/runs
-aggregate hopper_td3x_vs_sb3 "$runs/hopper/td3" "$runs/hopper/sb3_td3"
-aggregate hopper_ablation "$runs/hopper/td3" "$runs/hopper/ddpg" "$runs/hopper/td3_no_smoothing" \
-  "$runs/hopper/td3_no_cdq" "$runs/hopper/td3_no_delay"
-aggregate td3x_mujoco "$runs/halfcheetah/td3" "$runs/hopper/td3" "$runs/walker2d/td3" "$runs/ant/td3"
+# The groups are defined once, in scripts/results_tables.py (GROUPS): one line each, its name then its folders.
+groups=$("$python" scripts/results_tables.py --groups)
+while read -r name folders; do
+  read -r -a folders <<<"$folders"
+  aggregate "$name" "${folders[@]/#/$dst/runs/}"
+done <<<"$groups"
 
 page=${RESULTS_PAGE-$root/docs/results.md}
 if [[ -n $page ]]; then

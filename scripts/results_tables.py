@@ -1,12 +1,16 @@
 """Fill the tables of docs/results.md from the published results (run by scripts/publish_results.sh).
 
 Each table sits between two markers of the page, ``<!-- NAME -->`` and ``<!-- /NAME -->``, and is rewritten from
-``<results docs dir>/<group>/aggregate.csv`` (what ``sb3_td3x.experiment.aggregate`` wrote: the finished seeds of
-each algorithm, or all its seeds as far as they have all got while none has finished) and the runs' records under
-``<results docs dir>/runs/<env>/<algo>/seed<S>/``, which say how far each seed has got. Nothing in the tables
-is typed by hand, so publishing again after more runs brings the page up to date.
+``<results docs dir>/<group>/aggregate.csv`` and ``per_seed.csv`` (what ``sb3_td3x.experiment.aggregate`` wrote:
+the finished seeds of each algorithm, or all its seeds as far as they have all got while none has finished) and the
+runs' records under ``<results docs dir>/runs/<env>/<algo>/seed<S>/``, which say how far each seed has got. Nothing
+in the tables is typed by hand, so publishing again after more runs brings the page up to date.
+
+The groups (which run folders are aggregated together, and under which name) are defined here only, in ``GROUPS``;
+``scripts/publish_results.sh`` reads them with ``--groups``.
 
     python scripts/results_tables.py [--docs-dir docs/assets/results] [--page docs/results.md] [--seeds 0 1 2]
+    python scripts/results_tables.py --groups    # one line per group: its name, then its <env>/<algo> folders
 """
 
 from __future__ import annotations
@@ -27,6 +31,11 @@ ABLATION = {  # algo preset -> the row's name, in the paper's order
     "td3_no_delay": "TD3 without delayed policy updates (`td3_no_delay`)",
 }
 MUJOCO = {"halfcheetah": "HalfCheetah-v5", "hopper": "Hopper-v5", "walker2d": "Walker2d-v5", "ant": "Ant-v5"}
+GROUPS = {  # aggregate folder -> the run folders <env>/<algo> aggregated into it
+    "hopper_td3x_vs_sb3": ["hopper/td3", "hopper/sb3_td3"],
+    "hopper_ablation": [f"hopper/{algo}" for algo in ABLATION],
+    "td3x_mujoco": [f"{env}/td3" for env in MUJOCO],
+}
 HEADER = [
     "| {first} | seeds: steps reached | steps | final return, mean (95% CI) | final return per seed | best mean |",
     "|---|---|---|---|---|---|",
@@ -53,33 +62,42 @@ def steps(n: int) -> str:
     return f"{n // 1000}k" if n >= 1000 and n % 1000 == 0 else f"{n:,}"
 
 
-def row(name: str, aggregate: pd.DataFrame, env_id: str, algo: str, runs: Path, seeds: list[int]) -> str:
+def row(
+    name: str, aggregate: pd.DataFrame, per_seed: pd.DataFrame, env_id: str, algo: str, runs: Path, seeds: list[int]
+) -> str:
     progress = ", ".join(f"{seed}: {seed_progress(runs / f'seed{seed}')}" for seed in seeds)
     found = aggregate[(aggregate["env_id"] == env_id) & (aggregate["algo"] == algo)] if len(aggregate) else aggregate
     if found.empty:
         return f"| {name} | {progress} | | | | |"
     r = found.iloc[0]
     final = f"{r.final_mean:.1f} ({r.ci_low:.1f} to {r.ci_high:.1f})" if r.n_runs > 1 else f"{r.final_mean:.1f} (one seed)"
-    seeds_aggregated = str(r.seeds).split(", ")
-    per_seed = ", ".join(f"{seed}: {value}" for seed, value in zip(seeds_aggregated, str(r.per_seed_final).split(", ")))
-    return f"| {name} | {progress} | {int(r.timesteps):,} | {final} | {per_seed} | {r.best_mean:.1f} |"
+    finals = per_seed[(per_seed["env_id"] == env_id) & (per_seed["algo"] == algo)].sort_values(["seed", "run_dir"])
+    per_seed_text = ", ".join(f"{seed}: {value:.1f}" for seed, value in zip(finals["seed"], finals["final_return"]))
+    return f"| {name} | {progress} | {int(r.timesteps):,} | {final} | {per_seed_text} | {r.best_mean:.1f} |"
 
 
-def read_aggregate(path: Path) -> pd.DataFrame:
-    return pd.read_csv(path) if path.is_file() else pd.DataFrame()
+def read_csv(path: Path) -> pd.DataFrame:
+    return pd.read_csv(path) if path.is_file() else pd.DataFrame(columns=["env_id", "algo", "seed", "run_dir"])
+
+
+def table(docs_dir: Path, group: str, first: str, rows_of: list[tuple[str, str, str]], seeds: list[int]) -> str:
+    """One table: a row per (row name, env id, run folder <env>/<algo>), from the group's aggregate."""
+    aggregate = read_csv(docs_dir / group / "aggregate.csv")
+    per_seed = read_csv(docs_dir / group / "per_seed.csv")
+    rows = [h.format(first=first) for h in HEADER]
+    for name, env_id, folder in rows_of:
+        algo = folder.split("/")[1]
+        rows.append(row(name, aggregate, per_seed, env_id, algo, docs_dir / "runs" / folder, seeds))
+    return "\n".join(rows)
 
 
 def tables(docs_dir: Path, seeds: list[int]) -> dict[str, str]:
-    runs = docs_dir / "runs"
-    ablation = read_aggregate(docs_dir / "hopper_ablation" / "aggregate.csv")
-    mujoco = read_aggregate(docs_dir / "td3x_mujoco" / "aggregate.csv")
-    rows = [h.format(first="variant") for h in HEADER]
-    rows += [row(name, ablation, "Hopper-v5", algo, runs / "hopper" / algo, seeds) for algo, name in ABLATION.items()]
-    out = {"ABLATION": "\n".join(rows)}
-    rows = [h.format(first="env (TD3X, `algo=td3`)") for h in HEADER]
-    rows += [row(env_id, mujoco, env_id, "td3", runs / env / "td3", seeds) for env, env_id in MUJOCO.items()]
-    out["MUJOCO"] = "\n".join(rows)
-    return out
+    ablation = [(name, "Hopper-v5", f"hopper/{algo}") for algo, name in ABLATION.items()]
+    mujoco = [(env_id, env_id, f"{env}/td3") for env, env_id in MUJOCO.items()]
+    return {
+        "ABLATION": table(docs_dir, "hopper_ablation", "variant", ablation, seeds),
+        "MUJOCO": table(docs_dir, "td3x_mujoco", "env (TD3X, `algo=td3`)", mujoco, seeds),
+    }
 
 
 def fill(page: str, filled: dict[str, str]) -> str:
@@ -97,7 +115,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--docs-dir", type=Path, default=root / "docs" / "assets" / "results")
     parser.add_argument("--page", type=Path, default=root / "docs" / "results.md")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    parser.add_argument("--groups", action="store_true", help="print the groups to aggregate and exit")
     args = parser.parse_args(argv)
+    if args.groups:
+        for name, folders in GROUPS.items():
+            print(name, *folders)
+        return 0
     if not args.page.is_file():
         print(f"error: no page {args.page} to fill", file=sys.stderr)
         return 2

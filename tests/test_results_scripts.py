@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 import pandas as pd
+import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -85,6 +86,10 @@ def test_publish_copies_the_records_and_aggregates_them(tmp_path):
     table = pd.read_csv(docs / "hopper_td3x_vs_sb3" / "aggregate.csv")
     assert sorted(table.algo) == ["sb3_td3", "td3"] and set(table.n_runs) == {2} and set(table.timesteps) == {600}
     assert (docs / "hopper_td3x_vs_sb3" / "aggregate_Hopper-v5.png").is_file()
+    per_seed = pd.read_csv(docs / "hopper_td3x_vs_sb3" / "per_seed.csv")  # one row per run, the finals in long format
+    assert sorted(zip(per_seed.algo, per_seed.seed)) == [("sb3_td3", 0), ("sb3_td3", 1), ("td3", 0), ("td3", 1)]
+    for algo, finals in per_seed.groupby("algo")["final_return"]:
+        assert finals.mean() == pytest.approx(table.set_index("algo").loc[algo, "final_mean"])
     assert not list(docs.rglob("*.md"))  # under docs/, a Markdown file would be a page of the site
     assert (docs / "hopper_ablation" / "aggregate.csv").is_file() and (docs / "td3x_mujoco" / "aggregate.csv").is_file()
     # The page's tables are rewritten from the aggregates and the runs' records, between their markers

@@ -6,8 +6,8 @@ Every run folder below the given paths (a folder with ``evaluations.csv`` and ``
 (env id, algo name); the seeds of a group are aligned on the evaluation steps they all have. The statistic over
 seeds is the mean or the interquartile mean (IQM, the mean of the middle 50%, as recommended by Agarwal et al.
 2021, "Deep RL at the Edge of the Statistical Precipice"); its 95% confidence interval is a percentile
-bootstrap over seeds. Writes ``aggregate.csv``, ``aggregate.md`` (with each seed's final return) and ``aggregate_<env>.png`` to
-``--out``.
+bootstrap over seeds. Writes ``aggregate.csv``, ``aggregate.md`` (with each seed's final return), ``per_seed.csv``
+(one row per run: env id, algo, seed, run folder, steps, final return) and ``aggregate_<env>.png`` to ``--out``.
 """
 
 from __future__ import annotations
@@ -83,7 +83,7 @@ def load_runs(paths: list[Path]) -> pd.DataFrame:
 def aggregate(runs: pd.DataFrame, stat: str = "mean") -> tuple[pd.DataFrame, dict[tuple[str, str], pd.DataFrame]]:
     """The summary table (one row per env and algo) and, per group, the curve: statistic and CI per step."""
     statistic = STATISTICS[stat]
-    rows, curves = [], {}
+    rows, seed_rows, curves = [], [], {}
     if "algo_class" not in runs:
         runs = runs.assign(algo_class="")
     for (env_id, algo), group in runs.groupby(["env_id", "algo"], sort=True):
@@ -113,7 +113,17 @@ def aggregate(runs: pd.DataFrame, stat: str = "mean") -> tuple[pd.DataFrame, dic
                 "per_seed_final": ", ".join(f"{table[run_dir].iloc[-1]:.1f}" for run_dir in order),
             }
         )
-    return pd.DataFrame(rows), curves
+        seed_rows += [
+            {"env_id": env_id, "algo": algo, "seed": seed_of[run_dir], "run_dir": str(run_dir),
+             "timesteps": int(final["timesteps"]), "final_return": table[run_dir].iloc[-1]}
+            for run_dir in order
+        ]
+    summary = pd.DataFrame(rows)
+    # One row per run (env_id, algo, seed, run_dir, timesteps, final_return): the per-seed finals in long format
+    summary.attrs["per_seed"] = pd.DataFrame(
+        seed_rows, columns=["env_id", "algo", "seed", "run_dir", "timesteps", "final_return"]
+    )
+    return summary, curves
 
 
 def plot_curves(curves: dict[tuple[str, str], pd.DataFrame], stat: str, out_dir: Path) -> list[Path]:
@@ -159,11 +169,13 @@ def main(argv: list[str] | None = None) -> int:
     out_dir = args.out or args.paths[0]
     out_dir.mkdir(parents=True, exist_ok=True)
     table.to_csv(out_dir / "aggregate.csv", index=False)
+    table.attrs["per_seed"].to_csv(out_dir / "per_seed.csv", index=False)
     markdown = to_markdown(table)
     (out_dir / "aggregate.md").write_text(markdown + "\n")
     plots = plot_curves(curves, args.stat, out_dir)
     print(markdown)
-    print(f"\nWrote {out_dir / 'aggregate.csv'}, {out_dir / 'aggregate.md'} and {', '.join(map(str, plots))}")
+    written = [out_dir / "aggregate.csv", out_dir / "aggregate.md", out_dir / "per_seed.csv", *plots]
+    print(f"\nWrote {', '.join(map(str, written))}")
     return 0
 
 
