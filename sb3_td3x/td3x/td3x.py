@@ -20,12 +20,14 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, ReplayB
 from stable_baselines3.common.utils import FloatSchedule, get_parameters_by_name, update_learning_rate
 
 from sb3_td3x.common.buffers import TensorReplayBuffer
+from sb3_td3x.common import denormals
 from sb3_td3x.td3x.acceleration import (
     FunctionalCompiledUpdate,
     GraphedGradientStep,
     autocast_context,
     compiled_step,
 )
+from sb3_td3x.td3x.mlp_update import MlpUpdate
 from sb3_td3x.td3x.policies import CnnPolicy, MlpPolicy, MultiInputPolicy, TD3XPolicy
 
 SelfTD3X = TypeVar("SelfTD3X", bound="TD3X")
@@ -129,6 +131,12 @@ class TD3X(OffPolicyAlgorithm):
         :class:`~sb3_td3x.td3x.acceleration.FunctionalCompiledUpdate`); the first steps pay the compilation
     :param cuda_graph: opt-in, CUDA only: capture the whole gradient step, sampling included, in CUDA graphs and
         replay them (no kernel-launch or Python overhead per step)
+    :param mlp_update: for ReLU MLP policies with the hooks of steps 5 to 13 as written, compute the gradients by hand
+        instead of with autograd (:class:`~sb3_td3x.td3x.mlp_update.MlpUpdate`: the same update, faster); when a hook
+        is overridden, or with ``bf16``, ``compile_update`` or ``cuda_graph``, the hooks run with autograd as before
+    :param flush_denormals: on a CPU, flush denormal floats to zero during ``train()`` on every torch thread
+        (:func:`~sb3_td3x.common.denormals.flush_denormals`): Adam's second moment makes them from tiny gradients, and
+        each costs a hundred cycles; the process's setting is restored after each call
     :param _init_setup_model: Whether or not to build the network at the creation of the instance
     """
 
@@ -171,6 +179,8 @@ class TD3X(OffPolicyAlgorithm):
         bf16: bool = False,
         compile_update: bool = False,
         cuda_graph: bool = False,
+        mlp_update: bool = True,
+        flush_denormals: bool = True,
         _init_setup_model: bool = True,
     ):
         self._check_hyperparameters(
@@ -234,6 +244,8 @@ class TD3X(OffPolicyAlgorithm):
         self.bf16 = bf16
         self.compile_update = compile_update
         self.cuda_graph = cuda_graph
+        self.mlp_update = mlp_update
+        self.flush_denormals = flush_denormals
         # Number of actor (delayed) updates done so far; saved with the model.
         self._n_actor_updates = 0
         if cuda_graph:
@@ -381,14 +393,15 @@ class TD3X(OffPolicyAlgorithm):
         critic_infos: list[dict[str, th.Tensor]] = []
         actor_infos: list[dict[str, th.Tensor]] = []
         step = self._gradient_step_fn()
-        for _ in range(gradient_steps):
-            self._n_updates += 1
-            update_actor = self.should_update_actor(self._n_updates)  # step 13: delayed policy updates
-            critic_info, actor_info = step(batch_size, update_actor)
-            critic_infos.append(critic_info)
-            if update_actor:
-                self._n_actor_updates += 1
-                actor_infos.append(actor_info)
+        with denormals.flush_denormals(self.device.type == "cpu" and getattr(self, "flush_denormals", True)):
+            for _ in range(gradient_steps):
+                self._n_updates += 1
+                update_actor = self.should_update_actor(self._n_updates)  # step 13: delayed policy updates
+                critic_info, actor_info = step(batch_size, update_actor)
+                critic_infos.append(critic_info)
+                if update_actor:
+                    self._n_actor_updates += 1
+                    actor_infos.append(actor_info)
 
         self._log_train_infos(critic_infos, actor_infos)
 
@@ -438,6 +451,9 @@ class TD3X(OffPolicyAlgorithm):
                     )
                     update = compiled_step(self.update_from_batch)
                 self._step_fn = lambda batch_size, update_actor: update(self.sample_batch(batch_size), update_actor)
+            elif getattr(self, "mlp_update", True) and MlpUpdate.why_not(self) is None:
+                mlp = MlpUpdate(self)
+                self._step_fn = lambda batch_size, update_actor: mlp(self.sample_batch(batch_size), update_actor)
             else:
                 self._step_fn = self.gradient_step
         return self._step_fn
