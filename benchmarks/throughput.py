@@ -106,6 +106,12 @@ class _MatmulRecorder(TorchDispatchMode):
         return func(*args, **kwargs)
 
 
+def _random_strided(shape: tuple, stride: tuple, dtype: th.dtype, device: th.device) -> th.Tensor:
+    """Random values with the given shape and strides (broadcast inputs, with stride 0, included)."""
+    size = 1 + sum((n - 1) * s for n, s in zip(shape, stride))
+    return th.randn(size, dtype=dtype, device=device).as_strided(shape, stride)
+
+
 def matmul_floor_ms(model: TD3, reps: int = 50) -> float:
     """Milliseconds per gradient step that the update's matrix products take when each is run alone (median of
     ``reps`` calls per distinct product), averaged over ``policy_delay`` steps like the FLOP count."""
@@ -120,8 +126,8 @@ def matmul_floor_ms(model: TD3, reps: int = 50) -> float:
         key = (func, signature, kwargs)
         if key not in timed:
             args = [
-                th.empty_strided(a[0], a[1], dtype=a[2], device=device).normal_() if isinstance(a, tuple) and len(a) == 3
-                and isinstance(a[2], th.dtype) else a
+                _random_strided(*a, device=device) if isinstance(a, tuple) and len(a) == 3 and isinstance(a[2], th.dtype)
+                else a
                 for a in signature
             ]
             times = []
@@ -238,7 +244,8 @@ def main() -> None:
             print(
                 f"  {name:5s} {s['ms_per_gradient_step']:6.2f} ms/gradient step, {s['gflop_per_gradient_step']:.2f} GFLOP, "
                 f"{s['achieved_gflops']:6.1f} GFLOP/s = {100 * s['fraction_of_fp32_matmul_peak']:4.1f}% of the fp32 matmul "
-                f"peak ({r['fp32_matmul_peak_gflops']:.0f} GFLOP/s), replay {s['replay_bytes_per_transition']:.0f} B/transition"
+                f"peak ({r['fp32_matmul_peak_gflops']:.0f} GFLOP/s), "
+                f"replay {s['replay_bytes_per_transition']:.0f} B/transition"
             )
             print(
                 f"        {s['ms_per_step_end_to_end']:6.2f} ms/step end to end; matmul floor "

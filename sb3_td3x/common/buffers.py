@@ -207,17 +207,25 @@ class TensorReplayBuffer(ReplayBuffer):
         return self._gather(th.as_tensor(batch_inds, device=self._device), th.as_tensor(env_inds, device=self._device), env)
 
     def _gather(self, batch_inds: th.Tensor, env_inds: th.Tensor, env: VecNormalize | None) -> ReplayBufferSamples:
+        # One flat row index per transition and ``index_select`` on (buffer_size * n_envs, ...) views: a third of the
+        # time of indexing with the two index tensors.
+        rows = batch_inds * self.n_envs + env_inds
+
+        def take(storage: th.Tensor, index: th.Tensor = rows) -> th.Tensor:
+            return storage.view(-1, *storage.shape[2:]).index_select(0, index)
+
         if self.optimize_memory_usage:
-            next_obs = self.observations[(batch_inds + 1) % self.buffer_size, env_inds]
+            next_obs = take(self.observations, (batch_inds + 1) % self.buffer_size * self.n_envs + env_inds)
         else:
-            next_obs = self.next_observations[batch_inds, env_inds]  # type: ignore[index]
-        obs = self.observations[batch_inds, env_inds]
+            next_obs = take(self.next_observations)  # type: ignore[arg-type]
+        obs = take(self.observations)
         # Only use dones that are not due to timeouts
-        dones = (self.dones[batch_inds, env_inds] * (1 - self.timeouts[batch_inds, env_inds])).unsqueeze(1)
-        rewards = self.rewards[batch_inds, env_inds].unsqueeze(1)
+        dones = (take(self.dones) * (1 - take(self.timeouts))).unsqueeze(1)
+        rewards = take(self.rewards).unsqueeze(1)
         if env is not None:
-            obs, next_obs, rewards = self._normalize(obs, env), self._normalize(next_obs, env), self._normalize_rew(rewards, env)
-        return ReplayBufferSamples(obs, self.actions[batch_inds, env_inds], next_obs, dones, rewards)
+            obs, next_obs = self._normalize(obs, env), self._normalize(next_obs, env)
+            rewards = self._normalize_rew(rewards, env)
+        return ReplayBufferSamples(obs, take(self.actions), next_obs, dones, rewards)
 
     def _normalize(self, obs: th.Tensor, env: VecNormalize) -> th.Tensor:
         normalized = env.normalize_obs(obs.cpu().numpy())

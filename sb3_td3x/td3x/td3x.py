@@ -19,8 +19,8 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, ReplayBufferSamples, Schedule, TensorDict
 from stable_baselines3.common.utils import FloatSchedule, get_parameters_by_name, update_learning_rate
 
-from sb3_td3x.common.buffers import TensorReplayBuffer
 from sb3_td3x.common import denormals
+from sb3_td3x.common.buffers import TensorReplayBuffer
 from sb3_td3x.td3x.acceleration import (
     FunctionalCompiledUpdate,
     GraphedGradientStep,
@@ -342,6 +342,9 @@ class TD3X(OffPolicyAlgorithm):
                 )
             self.replay_buffer.enable_static_sampling()
         self._step_fn: Any = None
+        # Which update train() runs, set at its first call: "mlp" (MlpUpdate), "autograd" (the hooks as written),
+        # "compiled" or "cuda_graph".
+        self.update_path: str | None = None
         self._create_aliases()
         self._critic_lr_schedule = None if self.critic_learning_rate is None else FloatSchedule(self.critic_learning_rate)
         update_learning_rate(self.critic.optimizer, self.critic_lr_schedule(1))
@@ -437,9 +440,12 @@ class TD3X(OffPolicyAlgorithm):
     def _gradient_step_fn(self) -> Callable[[int, bool], tuple[dict[str, th.Tensor], dict[str, th.Tensor]]]:
         """``gradient_step`` itself, or its compiled or CUDA-graphed form when those are switched on."""
         if self._step_fn is None:
+            self.update_path = "autograd"
             if self.cuda_graph:
+                self.update_path = "cuda_graph"
                 self._step_fn = GraphedGradientStep(self)
             elif self.compile_update:
+                self.update_path = "compiled"
                 # Sampling stays eager: the buffer's size changes at every step.
                 reason = FunctionalCompiledUpdate.why_not(self)
                 if reason is None:
@@ -453,6 +459,7 @@ class TD3X(OffPolicyAlgorithm):
                 self._step_fn = lambda batch_size, update_actor: update(self.sample_batch(batch_size), update_actor)
             elif getattr(self, "mlp_update", True) and MlpUpdate.why_not(self) is None:
                 mlp = MlpUpdate(self)
+                self.update_path = "mlp"
                 self._step_fn = lambda batch_size, update_actor: mlp(self.sample_batch(batch_size), update_actor)
             else:
                 self._step_fn = self.gradient_step
@@ -696,6 +703,7 @@ class TD3X(OffPolicyAlgorithm):
             "critic_target",
             "_critic_lr_schedule",
             "_step_fn",
+            "update_path",
             "_actor_params",
             "_actor_target_params",
             "_critic_params",

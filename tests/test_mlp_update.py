@@ -1,0 +1,193 @@
+"""MlpUpdate (TD3X's default update, gradients by hand) against the hooks run with autograd, and flush_denormals."""
+
+import copy
+
+import numpy as np
+import pytest
+import torch as th
+from stable_baselines3.common.logger import configure
+from stable_baselines3.common.type_aliases import ReplayBufferSamples
+
+from sb3_td3x import TD3X
+from sb3_td3x.common.denormals import flush_denormals, flushes_all_threads
+from sb3_td3x.td3x.mlp_update import MlpUpdate
+
+
+def batches(n: int, obs_dim: int = 3, action_dim: int = 1, seed: int = 0) -> list[ReplayBufferSamples]:
+    g = th.Generator().manual_seed(seed)
+    return [
+        ReplayBufferSamples(
+            th.randn(32, obs_dim, generator=g),
+            th.rand(32, action_dim, generator=g) * 2 - 1,
+            th.randn(32, obs_dim, generator=g),
+            (th.rand(32, 1, generator=g) < 0.2).float(),
+            th.randn(32, 1, generator=g),
+        )
+        for _ in range(n)
+    ]
+
+
+def pair(env: str = "Pendulum-v1", policy_kwargs: dict | None = None, **kwargs) -> tuple[TD3X, TD3X]:
+    """Two models with the same weights: the default update (MlpUpdate) and the hooks with autograd."""
+    policy_kwargs = {"net_arch": [32, 32], **(policy_kwargs or {})}
+    models = [
+        TD3X("MlpPolicy", env, policy_kwargs=policy_kwargs, learning_starts=0, seed=0, mlp_update=flag, **kwargs)
+        for flag in (True, False)
+    ]
+    models[1].policy.load_state_dict(models[0].policy.state_dict())
+    for model in models:
+        model.set_logger(configure(None, []))
+    return models[0], models[1]
+
+
+def train_on(model: TD3X, data: list[ReplayBufferSamples], progresses=(1.0, 0.6, 0.3)) -> None:
+    it = iter(data)
+    model.sample_batch = lambda batch_size: next(it)
+    th.manual_seed(0)  # the same target policy smoothing noise in both models
+    steps = len(data) // len(progresses)
+    for progress in progresses:  # a learning-rate schedule changes between the calls
+        model._current_progress_remaining = progress
+        model.train(gradient_steps=steps, batch_size=32)
+
+
+def assert_same_training(fast: TD3X, reference: TD3X) -> None:
+    for (name, a), b in zip(reference.policy.state_dict().items(), fast.policy.state_dict().values()):
+        th.testing.assert_close(b, a, rtol=1e-4, atol=1e-5, msg=lambda m, name=name: f"{name}: {m}")
+    for optimizer in ("actor", "critic"):
+        ref_state = getattr(reference, optimizer).optimizer.state_dict()["state"]
+        fast_state = getattr(fast, optimizer).optimizer.state_dict()["state"]
+        assert ref_state.keys() == fast_state.keys()
+        for key in ref_state:
+            for field in ref_state[key]:
+                th.testing.assert_close(fast_state[key][field], ref_state[key][field], rtol=1e-4, atol=1e-6)
+    for key, value in reference.logger.name_to_value.items():
+        assert fast.logger.name_to_value[key] == pytest.approx(value, rel=1e-4, abs=1e-6), key
+
+
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        {},
+        {"policy_kwargs": {"n_critics": 3, "net_arch": {"pi": [16], "qf": [24, 16, 8]}}},
+        {"target_policy_smoothing": False, "clipped_double_q": False, "policy_delay": 1},
+        {"learning_rate": lambda progress: 1e-3 * progress, "critic_learning_rate": 3e-4},
+        {"policy_kwargs": {"optimizer_class": th.optim.AdamW, "optimizer_kwargs": {"weight_decay": 0.1}}},
+        {"policy_kwargs": {"optimizer_kwargs": {"fused": False, "foreach": True}}},  # optimizer.step() itself
+        {"policy_kwargs": {"optimizer_class": th.optim.SGD, "optimizer_kwargs": {"momentum": 0.9}}},
+    ],
+    ids=["defaults", "3-critics-deeper", "ddpg-like", "lr-schedules", "adamw", "foreach-adam", "sgd"],
+)
+def test_mlp_update_trains_as_autograd(kwargs):
+    fast, reference = pair(**kwargs)
+    data = batches(6)
+    train_on(fast, data)
+    train_on(reference, data)
+    assert fast.update_path == "mlp" and reference.update_path == "autograd"
+    assert_same_training(fast, reference)
+
+
+def test_mlp_update_with_n_step_returns_on_a_mujoco_task():
+    """NStepReplayBuffer's per-transition discounts, a MuJoCo observation, and the default sampling path."""
+    fast, reference = pair("InvertedPendulum-v5", n_steps=3, buffer_size=1000)
+    fast.learn(200)  # fills the buffer (no gradient step is compared here)
+    reference.replay_buffer = fast.replay_buffer
+    reference.policy.load_state_dict(fast.policy.state_dict())
+    # Deep copies: Adam's load_state_dict keeps the "step" tensors it is given, which the other optimizer increments.
+    reference.actor.optimizer.load_state_dict(copy.deepcopy(fast.actor.optimizer.state_dict()))
+    reference.critic.optimizer.load_state_dict(copy.deepcopy(fast.critic.optimizer.state_dict()))
+    reference._n_updates, reference._n_actor_updates = fast._n_updates, fast._n_actor_updates
+    for model in (fast, reference):
+        np.random.seed(1)
+        th.manual_seed(1)
+        model.train(gradient_steps=4, batch_size=64)
+    assert getattr(fast.replay_buffer.sample(4), "discounts", None) is not None
+    assert_same_training(fast, reference)
+
+
+def test_mlp_update_stacks_the_critics_and_survives_save_load(tmp_path):
+    fast, reference = pair()
+    data = batches(6)
+    train_on(fast, data[:3], progresses=(1.0,))
+    train_on(reference, data[:3], progresses=(1.0,))
+    critic = fast.critic.q_networks
+    # The critics' parameters are views of one stacked tensor per layer.
+    assert critic[0][0].weight.untyped_storage().data_ptr() == critic[1][0].weight.untyped_storage().data_ptr()
+    fast.save(tmp_path / "model.zip")
+    loaded = TD3X.load(tmp_path / "model.zip")
+    loaded.set_logger(configure(None, []))
+    # Parameter memory replaced behind the update's back (as Module.to(device) does) is bound again at the next step.
+    loaded.train(gradient_steps=0, batch_size=32)
+    for param in loaded.policy.parameters():
+        param.data = param.data.clone()
+    train_on(loaded, data[3:], progresses=(1.0,))
+    train_on(reference, data[3:], progresses=(1.0,))
+    assert loaded.update_path == "mlp"
+    assert_same_training(loaded, reference)
+
+
+class HuberTD3X(TD3X):
+    calls = 0
+
+    def critic_loss(self, current_q, target_q):
+        HuberTD3X.calls += 1
+        loss = sum(th.nn.functional.smooth_l1_loss(q, target_q) for q in current_q)
+        return loss, {"critic_loss": loss.detach()}
+
+
+def test_an_overridden_hook_runs_with_autograd():
+    model = HuberTD3X("MlpPolicy", "Pendulum-v1", learning_starts=0, seed=0, policy_kwargs={"net_arch": [16]})
+    model.set_logger(configure(None, []))
+    assert MlpUpdate.why_not(model) == "critic_loss is overridden"
+    HuberTD3X.calls = 0
+    train_on(model, batches(3), progresses=(1.0,))
+    assert HuberTD3X.calls == 3
+
+
+@pytest.mark.parametrize(
+    "kwargs, reason",
+    [
+        ({"bf16": True}, "bf16=True"),
+        ({"policy_kwargs": {"activation_fn": th.nn.Tanh}}, "the actor is not a ReLU MLP with a tanh output"),
+    ],
+)
+def test_why_not_names_the_reason(kwargs, reason):
+    model = TD3X("MlpPolicy", "Pendulum-v1", learning_starts=0, seed=0, **kwargs)
+    assert MlpUpdate.why_not(model) == reason
+
+
+def test_flush_denormals_reaches_the_worker_threads_and_restores():
+    threads = th.get_num_threads()
+    th.set_num_threads(2)
+    try:
+        tiny = th.full((4_000_000,), 1e-20)  # large enough to be split across both threads
+        assert (tiny * tiny > 0).all()  # 1e-40: a denormal
+        with flush_denormals():
+            flushed = tiny * tiny
+        assert (tiny * tiny > 0).all(), "the setting outlived the block"
+        if flushes_all_threads():
+            assert (flushed == 0).all()
+        else:
+            assert (flushed == 0).any()
+        with flush_denormals(enabled=False):
+            assert (tiny * tiny > 0).all()
+    finally:
+        th.set_num_threads(threads)
+
+
+def test_train_flushes_denormals_only_inside_train():
+    model = TD3X("MlpPolicy", "Pendulum-v1", learning_starts=0, seed=0, policy_kwargs={"net_arch": [16]})
+    model.set_logger(configure(None, []))
+    seen = []
+    original = model.critic.optimizer.step
+
+    def step(*args, **kwargs):
+        tiny = th.full((8,), 1e-20)
+        seen.append(bool((tiny * tiny == 0).all()))
+        return original(*args, **kwargs)
+
+    model.critic.optimizer.step = step  # a step hook would also switch off the direct fused call
+    model.mlp_update = False
+    train_on(model, batches(2), progresses=(1.0,))
+    assert seen == [True, True]
+    tiny = th.full((8,), 1e-20)
+    assert (tiny * tiny > 0).all()
