@@ -14,7 +14,8 @@ products, so :class:`MlpUpdate` computes them itself instead of recording an aut
 
 It computes what :meth:`TD3X.update_from_batch` computes (the tests compare both to float rounding), from the same
 batch and the same random numbers, so it replaces it only where that holds: :meth:`MlpUpdate.why_not` lists the
-conditions (no hook of steps 5 to 13 overridden, ReLU MLPs with a flatten features extractor, no bf16). Anything
+conditions (no hook of steps 5 to 13 overridden, ReLU MLPs with a flatten features extractor). With ``bf16=True``
+the products run in bf16 with fp32 weights, gradients and optimizer, as under autocast. Anything
 else runs the hooks with autograd, as before. Steps 14 and 15 are the model's own hooks, overridden or not.
 """
 
@@ -166,27 +167,37 @@ class CriticEnsemble:
             for kind in ("weight", "bias")
         ]
 
-    def forward(self, x: th.Tensor) -> tuple[th.Tensor, list[th.Tensor]]:
+    def cast(self, dtype: th.dtype) -> tuple[list[th.Tensor], list[th.Tensor]]:
+        """The stacked weights and biases in ``dtype`` (the tensors themselves in their own dtype)."""
+        return [w.to(dtype) for w in self.weights], [b.to(dtype) for b in self.biases]
+
+    @staticmethod
+    def forward(
+        x: th.Tensor, all_weights: list[th.Tensor], all_biases: list[th.Tensor]
+    ) -> tuple[th.Tensor, list[th.Tensor]]:
         """Q_i(x) for every critic, shape (n_critics, batch, 1), and each layer's input (for the backward pass)."""
         inputs = [x]
         # The critics share their input: one batched product with the input broadcast, (n_critics, batch, out).
-        h = th.baddbmm(self.biases[0].unsqueeze(1), x.expand(self.weights[0].shape[0], *x.shape), self.weights[0].mT)
-        for weights, biases in zip(self.weights[1:], self.biases[1:]):
+        h = th.baddbmm(all_biases[0].unsqueeze(1), x.expand(all_weights[0].shape[0], *x.shape), all_weights[0].mT)
+        for weights, biases in zip(all_weights[1:], all_biases[1:]):
             h = h.relu_()
             inputs.append(h)
             h = th.baddbmm(biases.unsqueeze(1), h, weights.mT)
         return h, inputs
 
-    def backward(self, grad_out: th.Tensor, inputs: list[th.Tensor]) -> tuple[list[th.Tensor], list[th.Tensor]]:
+    @staticmethod
+    def backward(
+        grad_out: th.Tensor, inputs: list[th.Tensor], all_weights: list[th.Tensor]
+    ) -> tuple[list[th.Tensor], list[th.Tensor]]:
         """Weight and bias gradients, per layer and stacked like the weights, from d loss / d Q (n, batch, 1)."""
         grad = grad_out
-        weight_grads: list[th.Tensor] = [None] * len(self.weights)  # type: ignore[list-item]
-        bias_grads: list[th.Tensor] = [None] * len(self.weights)  # type: ignore[list-item]
-        for depth in range(len(self.weights) - 1, 0, -1):
+        weight_grads: list[th.Tensor] = [None] * len(all_weights)  # type: ignore[list-item]
+        bias_grads: list[th.Tensor] = [None] * len(all_weights)  # type: ignore[list-item]
+        for depth in range(len(all_weights) - 1, 0, -1):
             h = inputs[depth]
             weight_grads[depth] = th.bmm(grad.transpose(1, 2), h)
             bias_grads[depth] = grad.sum(dim=1)
-            grad = _relu_backward(th.bmm(grad, self.weights[depth]), h, 0)
+            grad = _relu_backward(th.bmm(grad, all_weights[depth]), h, 0)
         x = inputs[0]
         weight_grads[0] = th.bmm(grad.transpose(1, 2), x.expand(grad.shape[0], *x.shape))
         bias_grads[0] = grad.sum(dim=1)
@@ -215,8 +226,6 @@ class MlpUpdate:
         for hook in REPLACED_HOOKS:
             if getattr(type(model), hook) is not getattr(TD3X, hook):
                 return f"{hook} is overridden"
-        if model.bf16:
-            return "bf16=True"
         policy = model.policy
         space = model.observation_space
         if len(space.shape or ()) != 1 or is_image_space(space):
@@ -245,6 +254,9 @@ class MlpUpdate:
     def __call__(self, batch: Any, update_actor: bool) -> Infos:
         self.critic.ensure_bound()
         self.critic_target.ensure_bound()
+        # bf16=True: the products and activations in bf16 (as under autocast), the weights, their gradients, the
+        # optimizers and the losses in fp32.
+        self.dtype = th.bfloat16 if self.model.bf16 else th.float32
         with th.no_grad():
             critic_info = self._update_critics(batch)  # steps 5-12
             if not update_actor:
@@ -254,63 +266,71 @@ class MlpUpdate:
         self.model.update_actor_target()  # step 14
         return critic_info, actor_info
 
+    def _cast_actor(self, linears: list[nn.Linear]) -> tuple[list[th.Tensor], list[th.Tensor]]:
+        return [lin.weight.to(self.dtype) for lin in linears], [lin.bias.to(self.dtype) for lin in linears]
+
     @staticmethod
-    def _actor_forward(linears: list[nn.Linear], obs: th.Tensor) -> tuple[th.Tensor, list[th.Tensor]]:
+    def _actor_forward(
+        weights: list[th.Tensor], biases: list[th.Tensor], obs: th.Tensor
+    ) -> tuple[th.Tensor, list[th.Tensor]]:
         """pi(s) in [-1, 1] and each layer's input."""
         inputs = [obs]
         h = obs
-        for lin in linears[:-1]:
-            h = th.addmm(lin.bias, h, lin.weight.t()).relu_()
+        for w, b in zip(weights[:-1], biases[:-1]):
+            h = th.addmm(b, h, w.t()).relu_()
             inputs.append(h)
-        last = linears[-1]
-        return th.addmm(last.bias, h, last.weight.t()).tanh_(), inputs
+        return th.addmm(biases[-1], h, weights[-1].t()).tanh_(), inputs
 
     def _target_q(self, batch: Any) -> th.Tensor:
         """Steps 5 to 9: y = r + gamma (1 - d) min_i Q'_i(s', clip(pi'(s') + eps, -1, 1))."""
         model = self.model
-        next_obs = batch.next_observations.float()
-        next_actions, _ = self._actor_forward(self.actor_target, next_obs)  # step 5
+        next_obs = batch.next_observations.to(self.dtype)
+        next_actions, _ = self._actor_forward(*self._cast_actor(self.actor_target), next_obs)  # step 5
         if model.target_policy_smoothing:  # step 6
             noise = th.randn_like(next_actions) * model.target_policy_noise
             next_actions = next_actions + noise.clamp(-model.target_noise_clip, model.target_noise_clip)
         next_actions = next_actions.clamp(-1.0, 1.0)
-        next_q, _ = self.critic_target.forward(th.cat([next_obs, next_actions], dim=1))  # step 7
+        obs_actions = th.cat([next_obs, next_actions], dim=1)
+        next_q, _ = self.critic_target.forward(obs_actions, *self.critic_target.cast(self.dtype))  # step 7
         next_q = next_q.min(dim=0).values if model.clipped_double_q else next_q[0]  # step 8
         discounts = batch.discounts if getattr(batch, "discounts", None) is not None else model.gamma
-        return batch.rewards + (1.0 - batch.dones) * discounts * next_q  # step 9
+        return batch.rewards + (1.0 - batch.dones) * discounts * next_q.float()  # step 9
 
     def _update_critics(self, batch: Any) -> dict[str, th.Tensor]:
         target_q = self._target_q(batch)  # steps 5-9
-        obs_actions = th.cat([batch.observations.float(), batch.actions], dim=1)
-        current_q, inputs = self.critic.forward(obs_actions)  # step 10
-        td_errors = current_q - target_q.unsqueeze(0)  # (n_critics, batch, 1)
+        obs_actions = th.cat([batch.observations, batch.actions], dim=1).to(self.dtype)
+        weights, biases = self.critic.cast(self.dtype)
+        current_q, inputs = self.critic.forward(obs_actions, weights, biases)  # step 10
+        td_errors = current_q.float() - target_q.unsqueeze(0)  # (n_critics, batch, 1)
         loss = td_errors.square().mean(dim=(1, 2)).sum()  # step 11: sum_i MSE(Q_i, y)
         # d loss / d Q_i = 2 (Q_i - y) / batch
-        weight_grads, bias_grads = self.critic.backward(td_errors * (2.0 / td_errors.shape[1]), inputs)
+        grad = (td_errors * (2.0 / td_errors.shape[1])).to(self.dtype)
+        weight_grads, bias_grads = self.critic.backward(grad, inputs, weights)
         for param, depth, i, kind in self._critic_params:
-            param.grad = (weight_grads if kind == "weight" else bias_grads)[depth][i]
+            param.grad = (weight_grads if kind == "weight" else bias_grads)[depth][i].float()
         optimizer_step(self.model.critic.optimizer)  # step 12
         info = {"critic_loss": loss, "target_q": target_q.mean()}
-        q_means = current_q.mean(dim=(1, 2))
+        q_means = current_q.float().mean(dim=(1, 2))
         for i in range(current_q.shape[0]):
             info[f"q{i + 1}"] = q_means[i]
         return info
 
     def _update_actor(self, obs: th.Tensor) -> dict[str, th.Tensor]:
         """Step 13: J = -mean Q_1(s, pi(s)); the gradient reaches the actor through the action only."""
-        obs = obs.float()
-        actions, actor_inputs = self._actor_forward(self.actor, obs)
-        weights = [w[0] for w in self.critic.weights]
-        biases = [b[0] for b in self.critic.biases]
+        obs = obs.to(self.dtype)
+        actor_weights, actor_biases = self._cast_actor(self.actor)
+        actions, actor_inputs = self._actor_forward(actor_weights, actor_biases, obs)
+        weights = [w[0].to(self.dtype) for w in self.critic.weights]
+        biases = [b[0].to(self.dtype) for b in self.critic.biases]
         h = th.cat([obs, actions], dim=1)
         critic_inputs = []
         for w, b in zip(weights[:-1], biases[:-1]):
             h = th.addmm(b, h, w.t()).relu_()
             critic_inputs.append(h)
-        q = th.addmm(biases[-1], h, weights[-1].t())  # (batch, 1)
+        q = th.addmm(biases[-1], h, weights[-1].t()).float()  # (batch, 1)
         loss = -q.mean()
         # d J / d Q_1 = -1 / batch, back through the critic's layers to its input
-        grad = th.full_like(q, -1.0 / q.shape[0])
+        grad = th.full_like(q, -1.0 / q.shape[0]).to(self.dtype)
         for depth in range(len(weights) - 1, 0, -1):
             grad = _relu_backward(grad @ weights[depth], critic_inputs[depth - 1], 0)
         obs_dim = obs.shape[1]
@@ -318,9 +338,9 @@ class MlpUpdate:
         grad = _tanh_backward(grad, actions)
         for depth in range(len(self.actor) - 1, -1, -1):
             lin, h = self.actor[depth], actor_inputs[depth]
-            lin.weight.grad = grad.t() @ h
-            lin.bias.grad = grad.sum(dim=0)
+            lin.weight.grad = (grad.t() @ h).float()
+            lin.bias.grad = grad.sum(dim=0).float()
             if depth > 0:
-                grad = _relu_backward(grad @ lin.weight, h, 0)
+                grad = _relu_backward(grad @ actor_weights[depth], h, 0)
         optimizer_step(self.model.actor.optimizer)
         return {"actor_loss": loss}
