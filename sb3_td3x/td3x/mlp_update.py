@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING, Any
 
 import torch as th
 import torch.optim.optimizer as _optim_module
+from gymnasium import spaces
 from stable_baselines3.common.preprocessing import is_image_space
 from stable_baselines3.common.torch_layers import FlattenExtractor
 from torch import nn
@@ -70,6 +71,20 @@ def _mlp_linears(mlp: nn.Module, final: type[nn.Module] | None) -> list[nn.Linea
     if not all(type(m) is nn.ReLU for m in modules[1::2]):
         return None
     return linears  # type: ignore[return-value]
+
+
+def _flat_box(space: Any) -> bool:
+    """A 1-D Box: what SB3 preprocesses with ``.float()`` alone (Discrete and MultiDiscrete are one-hot encoded)."""
+    return isinstance(space, spaces.Box) and len(space.shape) == 1 and not is_image_space(space)
+
+
+def mlp_actor_layers(actor: nn.Module, observation_space: Any) -> list[nn.Linear] | None:
+    """The Linear layers of an SB3 ``Actor`` that is a ReLU MLP with a tanh output on flat, non-image observations."""
+    if not _flat_box(observation_space):
+        return None
+    if type(getattr(actor, "features_extractor", None)) is not FlattenExtractor:
+        return None
+    return _mlp_linears(actor.mu, nn.Tanh)
 
 
 def optimizer_step(optimizer: th.optim.Optimizer) -> None:
@@ -228,8 +243,8 @@ class MlpUpdate:
                 return f"{hook} is overridden"
         policy = model.policy
         space = model.observation_space
-        if len(space.shape or ()) != 1 or is_image_space(space):
-            return f"the observations are not flat vectors (shape {space.shape})"
+        if not _flat_box(space):
+            return f"the observations are not a flat Box (got {space})"
         for name in ("actor", "actor_target", "critic", "critic_target"):
             module = getattr(model, name)
             if type(module.features_extractor) is not FlattenExtractor:

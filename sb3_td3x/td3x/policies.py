@@ -47,12 +47,24 @@ class TD3XPolicy(TD3Policy):
     def set_training_mode(self, mode: bool) -> None:
         """Put the actor and critics in training or evaluation mode (batch norm, dropout); a no-op when already there.
 
-        SB3 calls this twice per environment step (collection, then training); walking every module each time
-        costs more than a small network's forward pass, so the walk is skipped when the mode does not change.
+        SB3 calls this twice per environment step once training runs (collection, then training). Instead of
+        ``Module.train``'s recursive walk, the flag is set on a list of the actor's and critics' modules made once,
+        when every one of them uses ``Module.train`` as it is (otherwise the walk runs, as in SB3).
         """
         if self.actor.training == mode and self.critic.training == mode and self.training == mode:
             return
-        super().set_training_mode(mode)
+        cache = self.__dict__.get("_mode_modules")
+        if cache is None or cache[0] is not self.actor or cache[1] is not self.critic:
+            modules = [m for part in (self.actor, self.critic) for m in part.modules()]
+            plain = all(type(m).train is th.nn.Module.train for m in modules)
+            cache = (self.actor, self.critic, modules if plain else None)
+            self.__dict__["_mode_modules"] = cache
+        if cache[2] is None:
+            super().set_training_mode(mode)
+            return
+        for module in cache[2]:
+            module.__dict__["training"] = mode  # what Module.train sets, without Module.__setattr__
+        self.training = mode
 
     def sb3_state_dict(self) -> dict[str, th.Tensor]:
         """The state dict in the layout of SB3's ``TD3Policy``."""

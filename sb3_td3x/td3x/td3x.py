@@ -27,7 +27,7 @@ from sb3_td3x.td3x.acceleration import (
     autocast_context,
     compiled_step,
 )
-from sb3_td3x.td3x.mlp_update import MlpUpdate
+from sb3_td3x.td3x.mlp_update import MlpUpdate, mlp_actor_layers
 from sb3_td3x.td3x.policies import CnnPolicy, MlpPolicy, MultiInputPolicy, TD3XPolicy
 
 SelfTD3X = TypeVar("SelfTD3X", bound="TD3X")
@@ -48,6 +48,20 @@ def frozen(parameters: list[th.nn.Parameter]) -> Iterator[None]:
     finally:
         for p in params:
             p.requires_grad_(True)
+
+
+class _DirectMlpActor:
+    """pi(s) of a ReLU MLP actor from its Linear layers: what the module computes, with the same kernels."""
+
+    def __init__(self, layers: list[th.nn.Linear]):
+        self.layers = layers
+
+    def __call__(self, obs: th.Tensor) -> th.Tensor:
+        h = obs.float()
+        for layer in self.layers[:-1]:
+            h = th.addmm(layer.bias, h, layer.weight.t()).relu_()
+        last = self.layers[-1]
+        return th.addmm(last.bias, h, last.weight.t()).tanh_()
 
 
 class TD3X(OffPolicyAlgorithm):
@@ -602,10 +616,20 @@ class TD3X(OffPolicyAlgorithm):
         with th.no_grad():
             obs = th.as_tensor(self._last_obs, device=self.device).reshape(n_envs, *self.observation_space.shape)
             # (n_envs, *action_shape), in [-1, 1]
-            scaled_action = self.actor(obs).cpu().numpy().reshape((n_envs, *self.action_space.shape))
+            scaled_action = self._exploration_actor()(obs).cpu().numpy().reshape((n_envs, *self.action_space.shape))
         if action_noise is not None:
             scaled_action = np.clip(scaled_action + action_noise(), -1, 1)
         return self.policy.unscale_action(scaled_action), scaled_action
+
+    def _exploration_actor(self) -> Callable[[th.Tensor], th.Tensor]:
+        """The actor, or for a ReLU MLP actor on flat observations its layers called directly: the same products,
+        without the module calls (a third of the time of an actor forward on one observation)."""
+        actor = self.__dict__.get("_direct_actor")
+        if actor is None or actor[0] is not self.actor:
+            layers = mlp_actor_layers(self.actor, self.observation_space)
+            actor = (self.actor, self.actor if layers is None else _DirectMlpActor(layers))
+            self._direct_actor = actor
+        return actor[1]
 
     def _store_transition(
         self,
@@ -656,17 +680,21 @@ class TD3X(OffPolicyAlgorithm):
                     group["lr"] = value
 
     def _log_train_infos(self, critic_infos: list[dict[str, th.Tensor]], actor_infos: list[dict[str, th.Tensor]]) -> None:
-        """Average the detached statistics of the gradient steps, with a single device-to-host copy."""
+        """Average the detached statistics of the gradient steps, with one stack and one device-to-host copy."""
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
         self.logger.record("train/actor_updates", self._n_actor_updates)
-        for infos in (critic_infos, actor_infos):
-            if not infos:
-                continue
-            keys = list(infos[0].keys())
-            means = th.stack([th.stack([info[k] for k in keys]) for info in infos]).float().mean(dim=0).tolist()
-            for key, value in zip(keys, means):
+        groups = [(list(infos[0].keys()), infos) for infos in (critic_infos, actor_infos) if infos]
+        if not groups:
+            return
+        values = th.stack([info[key].float() for keys, infos in groups for info in infos for key in keys]).tolist()
+        start = 0
+        for keys, infos in groups:
+            n, k = len(infos), len(keys)
+            for j, key in enumerate(keys):
+                mean = sum(values[start + i * k + j] for i in range(n)) / n
                 name = key if key.endswith("loss") else f"{key}_mean"
-                self.logger.record(f"train/{name}", value)
+                self.logger.record(f"train/{name}", mean)
+            start += n * k
 
     def learn(
         self: SelfTD3X,
@@ -703,6 +731,7 @@ class TD3X(OffPolicyAlgorithm):
             "critic_target",
             "_critic_lr_schedule",
             "_step_fn",
+            "_direct_actor",
             "update_path",
             "_actor_params",
             "_actor_target_params",
