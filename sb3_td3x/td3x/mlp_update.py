@@ -21,6 +21,7 @@ else runs the hooks with autograd, as before. Steps 14 and 15 are the model's ow
 
 from __future__ import annotations
 
+import math
 from typing import TYPE_CHECKING, Any
 
 import torch as th
@@ -139,60 +140,105 @@ def _direct_fused_adam(optimizer: th.optim.Optimizer) -> bool:
     return True
 
 
-class CriticEnsemble:
-    """The critics (or critic targets) of a policy as stacked tensors, which their parameters are views of.
+class FlatTensors:
+    """Tensors of the given shapes, views of one flat tensor: copying or casting all of them is one operation."""
 
-    ``weights[l]`` has shape ``(n_critics, out, in)`` and ``biases[l]`` ``(n_critics, out)``; critic ``i``'s layer
-    ``l`` weight is ``weights[l][i]``, the same memory. Rebinds itself when a parameter's memory is replaced (a load
-    with ``assign=True``, a move to another device).
+    def __init__(self, shapes: list[tuple[int, ...]], dtype: th.dtype, device: th.device):
+        sizes = [math.prod(shape) for shape in shapes]
+        self.flat = th.empty(sum(sizes), dtype=dtype, device=device)
+        self.views: list[th.Tensor] = []
+        offset = 0
+        for shape, size in zip(shapes, sizes):
+            self.views.append(self.flat[offset : offset + size].view(shape))
+            offset += size
+
+
+class MlpStack:
+    """``n`` ReLU MLPs of one architecture (the critics, the critic targets, or one actor), stacked.
+
+    ``weights[l]`` has shape ``(n, out, in)`` and ``biases[l]`` ``(n, out)``, all views of one flat tensor, and network
+    ``i``'s layer ``l`` parameters are views of ``weights[l][i]`` and ``biases[l][i]``: the same memory. So the
+    critics go through a layer in one batched product, and casting or copying every weight is one operation.
+    Rebinds itself when a parameter's memory is replaced behind its back (``Module.to(device)``).
     """
 
-    def __init__(self, q_networks: nn.ModuleList):
-        self.layers = [_mlp_linears(q, None) for q in q_networks]
-        self.weights: list[th.Tensor] = []
-        self.biases: list[th.Tensor] = []
+    def __init__(self, networks: list[list[nn.Linear]]):
+        self.layers = networks
+        self._low_precision: dict[th.dtype, FlatTensors] = {}
+        self._grads: dict[th.dtype, FlatTensors] = {}
         self._bind()
 
+    def _shapes(self) -> list[tuple[int, ...]]:
+        n = len(self.layers)
+        return [
+            shape
+            for lin in self.layers[0]
+            for shape in ((n, *lin.weight.shape), (n, *lin.bias.shape))  # type: ignore[union-attr]
+        ]
+
     def _bind(self) -> None:
-        self.weights, self.biases = [], []
-        for depth in range(len(self.layers[0])):
-            layer = [net[depth] for net in self.layers]  # type: ignore[index]
-            weights = th.stack([lin.weight.detach() for lin in layer])
-            biases = th.stack([lin.bias.detach() for lin in layer])
-            for i, lin in enumerate(layer):
-                lin.weight.data = weights[i]
-                lin.bias.data = biases[i]
-            self.weights.append(weights)
-            self.biases.append(biases)
+        first = self.layers[0][0].weight
+        self.store = FlatTensors(self._shapes(), first.dtype, first.device)
+        self.weights, self.biases = self.store.views[0::2], self.store.views[1::2]
+        for depth in range(len(self.weights)):
+            for i, net in enumerate(self.layers):
+                lin = net[depth]
+                self.weights[depth][i].copy_(lin.weight.detach())
+                self.biases[depth][i].copy_(lin.bias.detach())
+                lin.weight.data = self.weights[depth][i]
+                lin.bias.data = self.biases[depth][i]
         self._pointers = self._current_pointers()
+        self._low_precision.clear()
+        self._grads.clear()
 
     def _current_pointers(self) -> list[int]:
-        return [p.data_ptr() for net in self.layers for lin in net for p in (lin.weight, lin.bias)]  # type: ignore[union-attr]
+        return [p.data_ptr() for p in self.parameters()]
+
+    def parameters(self) -> list[nn.Parameter]:
+        """Every parameter, network by network, layer by layer, weight then bias."""
+        return [p for net in self.layers for lin in net for p in (lin.weight, lin.bias)]  # type: ignore[misc]
 
     def ensure_bound(self) -> None:
         if self._current_pointers() != self._pointers:
             self._bind()
 
-    def parameters_in_order(self) -> list[tuple[nn.Parameter, int, int, str]]:
-        """(parameter, layer, critic, "weight" or "bias") for every parameter."""
-        return [
-            (getattr(lin, kind), depth, i, kind)
-            for i, net in enumerate(self.layers)
-            for depth, lin in enumerate(net)  # type: ignore[arg-type]
-            for kind in ("weight", "bias")
-        ]
-
     def cast(self, dtype: th.dtype) -> tuple[list[th.Tensor], list[th.Tensor]]:
-        """The stacked weights and biases in ``dtype`` (the tensors themselves in their own dtype)."""
-        return [w.to(dtype) for w in self.weights], [b.to(dtype) for b in self.biases]
+        """The stacked weights and biases in ``dtype``: themselves, or a copy refreshed in place (one operation)."""
+        if dtype == self.store.flat.dtype:
+            return self.weights, self.biases
+        copy = self._low_precision.get(dtype)
+        if copy is None:
+            copy = self._low_precision[dtype] = FlatTensors(self._shapes(), dtype, self.store.flat.device)
+        copy.flat.copy_(self.store.flat)
+        return copy.views[0::2], copy.views[1::2]
+
+    def grad_buffers(self, dtype: th.dtype) -> tuple[list[th.Tensor], list[th.Tensor]]:
+        """Buffers shaped like the weights and biases, in ``dtype``, for the backward pass to write into."""
+        buffers = self._grads.get(dtype)
+        if buffers is None:
+            buffers = self._grads[dtype] = FlatTensors(self._shapes(), dtype, self.store.flat.device)
+        return buffers.views[0::2], buffers.views[1::2]
+
+    def set_grads(self, dtype: th.dtype) -> None:
+        """``param.grad`` of every parameter: views of the gradients written by the backward pass in ``dtype``, cast
+        to the parameters' dtype (one operation) when they differ."""
+        param_dtype = self.store.flat.dtype
+        self.grad_buffers(param_dtype)
+        if dtype != param_dtype:
+            self._grads[param_dtype].flat.copy_(self._grads[dtype].flat)
+        weight_grads, bias_grads = self.grad_buffers(param_dtype)
+        for i, net in enumerate(self.layers):
+            for depth, lin in enumerate(net):
+                lin.weight.grad = weight_grads[depth][i]
+                lin.bias.grad = bias_grads[depth][i]
 
     @staticmethod
     def forward(
         x: th.Tensor, all_weights: list[th.Tensor], all_biases: list[th.Tensor]
     ) -> tuple[th.Tensor, list[th.Tensor]]:
-        """Q_i(x) for every critic, shape (n_critics, batch, 1), and each layer's input (for the backward pass)."""
+        """Every network's output on the same input, shape (n, batch, out), and each layer's input (for backward)."""
         inputs = [x]
-        # The critics share their input: one batched product with the input broadcast, (n_critics, batch, out).
+        # One batched product with the shared input broadcast: (n, batch, out).
         h = th.baddbmm(all_biases[0].unsqueeze(1), x.expand(all_weights[0].shape[0], *x.shape), all_weights[0].mT)
         for weights, biases in zip(all_weights[1:], all_biases[1:]):
             h = h.relu_()
@@ -200,23 +246,18 @@ class CriticEnsemble:
             h = th.baddbmm(biases.unsqueeze(1), h, weights.mT)
         return h, inputs
 
-    @staticmethod
-    def backward(
-        grad_out: th.Tensor, inputs: list[th.Tensor], all_weights: list[th.Tensor]
-    ) -> tuple[list[th.Tensor], list[th.Tensor]]:
-        """Weight and bias gradients, per layer and stacked like the weights, from d loss / d Q (n, batch, 1)."""
+    def backward(self, grad_out: th.Tensor, inputs: list[th.Tensor], all_weights: list[th.Tensor]) -> None:
+        """Weight and bias gradients from d loss / d output (n, batch, out), written into :meth:`grad_buffers`."""
+        weight_grads, bias_grads = self.grad_buffers(grad_out.dtype)
         grad = grad_out
-        weight_grads: list[th.Tensor] = [None] * len(all_weights)  # type: ignore[list-item]
-        bias_grads: list[th.Tensor] = [None] * len(all_weights)  # type: ignore[list-item]
         for depth in range(len(all_weights) - 1, 0, -1):
             h = inputs[depth]
-            weight_grads[depth] = th.bmm(grad.transpose(1, 2), h)
-            bias_grads[depth] = grad.sum(dim=1)
+            th.bmm(grad.mT, h, out=weight_grads[depth])
+            th.sum(grad, dim=1, out=bias_grads[depth])
             grad = _relu_backward(th.bmm(grad, all_weights[depth]), h, 0)
         x = inputs[0]
-        weight_grads[0] = th.bmm(grad.transpose(1, 2), x.expand(grad.shape[0], *x.shape))
-        bias_grads[0] = grad.sum(dim=1)
-        return weight_grads, bias_grads
+        th.bmm(grad.mT, x.expand(grad.shape[0], *x.shape), out=weight_grads[0])
+        th.sum(grad, dim=1, out=bias_grads[0])
 
 
 class MlpUpdate:
@@ -227,11 +268,11 @@ class MlpUpdate:
 
     def __init__(self, model: TD3X):
         self.model = model
-        self.actor = _mlp_linears(model.actor.mu, nn.Tanh)
-        self.actor_target = _mlp_linears(model.actor_target.mu, nn.Tanh)
-        self.critic = CriticEnsemble(model.critic.q_networks)
-        self.critic_target = CriticEnsemble(model.critic_target.q_networks)
-        self._critic_params = self.critic.parameters_in_order()
+        self.actor = MlpStack([_mlp_linears(model.actor.mu, nn.Tanh)])  # type: ignore[list-item]
+        self.actor_target = MlpStack([_mlp_linears(model.actor_target.mu, nn.Tanh)])  # type: ignore[list-item]
+        self.critic = MlpStack([_mlp_linears(q, None) for q in model.critic.q_networks])  # type: ignore[misc]
+        self.critic_target = MlpStack([_mlp_linears(q, None) for q in model.critic_target.q_networks])  # type: ignore[misc]
+        self.dtype = th.float32
 
     @staticmethod
     def why_not(model: TD3X) -> str | None:
@@ -267,8 +308,8 @@ class MlpUpdate:
 
     # ------------------------------------------------------------------------------------------------------------
     def __call__(self, batch: Any, update_actor: bool) -> Infos:
-        self.critic.ensure_bound()
-        self.critic_target.ensure_bound()
+        for stack in (self.actor, self.actor_target, self.critic, self.critic_target):
+            stack.ensure_bound()
         # bf16=True: the products and activations in bf16 (as under autocast), the weights, their gradients, the
         # optimizers and the losses in fp32.
         self.dtype = th.bfloat16 if self.model.bf16 else th.float32
@@ -281,32 +322,29 @@ class MlpUpdate:
         self.model.update_actor_target()  # step 14
         return critic_info, actor_info
 
-    def _cast_actor(self, linears: list[nn.Linear]) -> tuple[list[th.Tensor], list[th.Tensor]]:
-        return [lin.weight.to(self.dtype) for lin in linears], [lin.bias.to(self.dtype) for lin in linears]
-
     @staticmethod
     def _actor_forward(
         weights: list[th.Tensor], biases: list[th.Tensor], obs: th.Tensor
     ) -> tuple[th.Tensor, list[th.Tensor]]:
-        """pi(s) in [-1, 1] and each layer's input."""
+        """pi(s) in [-1, 1] and each layer's input, from the actor's stacked (1, out, in) weights."""
         inputs = [obs]
         h = obs
         for w, b in zip(weights[:-1], biases[:-1]):
-            h = th.addmm(b, h, w.t()).relu_()
+            h = th.addmm(b[0], h, w[0].t()).relu_()
             inputs.append(h)
-        return th.addmm(biases[-1], h, weights[-1].t()).tanh_(), inputs
+        return th.addmm(biases[-1][0], h, weights[-1][0].t()).tanh_(), inputs
 
     def _target_q(self, batch: Any) -> th.Tensor:
         """Steps 5 to 9: y = r + gamma (1 - d) min_i Q'_i(s', clip(pi'(s') + eps, -1, 1))."""
         model = self.model
         next_obs = batch.next_observations.to(self.dtype)
-        next_actions, _ = self._actor_forward(*self._cast_actor(self.actor_target), next_obs)  # step 5
+        next_actions, _ = self._actor_forward(*self.actor_target.cast(self.dtype), next_obs)  # step 5
         if model.target_policy_smoothing:  # step 6
             noise = th.randn_like(next_actions) * model.target_policy_noise
             next_actions = next_actions + noise.clamp(-model.target_noise_clip, model.target_noise_clip)
         next_actions = next_actions.clamp(-1.0, 1.0)
         obs_actions = th.cat([next_obs, next_actions], dim=1)
-        next_q, _ = self.critic_target.forward(obs_actions, *self.critic_target.cast(self.dtype))  # step 7
+        next_q, _ = MlpStack.forward(obs_actions, *self.critic_target.cast(self.dtype))  # step 7
         next_q = next_q.min(dim=0).values if model.clipped_double_q else next_q[0]  # step 8
         discounts = batch.discounts if getattr(batch, "discounts", None) is not None else model.gamma
         return batch.rewards + (1.0 - batch.dones) * discounts * next_q.float()  # step 9
@@ -315,14 +353,12 @@ class MlpUpdate:
         target_q = self._target_q(batch)  # steps 5-9
         obs_actions = th.cat([batch.observations, batch.actions], dim=1).to(self.dtype)
         weights, biases = self.critic.cast(self.dtype)
-        current_q, inputs = self.critic.forward(obs_actions, weights, biases)  # step 10
+        current_q, inputs = MlpStack.forward(obs_actions, weights, biases)  # step 10
         td_errors = current_q.float() - target_q.unsqueeze(0)  # (n_critics, batch, 1)
         loss = td_errors.square().mean(dim=(1, 2)).sum()  # step 11: sum_i MSE(Q_i, y)
         # d loss / d Q_i = 2 (Q_i - y) / batch
-        grad = (td_errors * (2.0 / td_errors.shape[1])).to(self.dtype)
-        weight_grads, bias_grads = self.critic.backward(grad, inputs, weights)
-        for param, depth, i, kind in self._critic_params:
-            param.grad = (weight_grads if kind == "weight" else bias_grads)[depth][i].float()
+        self.critic.backward((td_errors * (2.0 / td_errors.shape[1])).to(self.dtype), inputs, weights)
+        self.critic.set_grads(self.dtype)
         optimizer_step(self.model.critic.optimizer)  # step 12
         info = {"critic_loss": loss, "target_q": target_q.mean()}
         q_means = current_q.float().mean(dim=(1, 2))
@@ -333,10 +369,10 @@ class MlpUpdate:
     def _update_actor(self, obs: th.Tensor) -> dict[str, th.Tensor]:
         """Step 13: J = -mean Q_1(s, pi(s)); the gradient reaches the actor through the action only."""
         obs = obs.to(self.dtype)
-        actor_weights, actor_biases = self._cast_actor(self.actor)
+        actor_weights, actor_biases = self.actor.cast(self.dtype)
         actions, actor_inputs = self._actor_forward(actor_weights, actor_biases, obs)
-        weights = [w[0].to(self.dtype) for w in self.critic.weights]
-        biases = [b[0].to(self.dtype) for b in self.critic.biases]
+        critic_weights, critic_biases = self.critic.cast(self.dtype)  # after the critics' step
+        weights, biases = [w[0] for w in critic_weights], [b[0] for b in critic_biases]
         h = th.cat([obs, actions], dim=1)
         critic_inputs = []
         for w, b in zip(weights[:-1], biases[:-1]):
@@ -351,11 +387,13 @@ class MlpUpdate:
         obs_dim = obs.shape[1]
         grad = grad @ weights[0][:, obs_dim:]  # d J / d a: the action columns of the first layer only
         grad = _tanh_backward(grad, actions)
-        for depth in range(len(self.actor) - 1, -1, -1):
-            lin, h = self.actor[depth], actor_inputs[depth]
-            lin.weight.grad = (grad.t() @ h).float()
-            lin.bias.grad = grad.sum(dim=0).float()
+        weight_grads, bias_grads = self.actor.grad_buffers(self.dtype)
+        for depth in range(len(actor_weights) - 1, -1, -1):
+            h = actor_inputs[depth]
+            th.mm(grad.t(), h, out=weight_grads[depth][0])
+            th.sum(grad, dim=0, out=bias_grads[depth][0])
             if depth > 0:
-                grad = _relu_backward(grad @ actor_weights[depth], h, 0)
+                grad = _relu_backward(grad @ actor_weights[depth][0], h, 0)
+        self.actor.set_grads(self.dtype)
         optimizer_step(self.model.actor.optimizer)
         return {"actor_loss": loss}
