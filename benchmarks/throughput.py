@@ -82,6 +82,16 @@ def gradient_step_time(model: TD3, steps: int) -> float:
     return (time.perf_counter() - start) / steps
 
 
+_LINEAR_POINTWISE = getattr(getattr(th.ops, "mkldnn", None), "_linear_pointwise", None)
+if _LINEAR_POINTWISE is not None:
+    from torch.utils.flop_counter import register_flop_formula
+
+    @register_flop_formula(_LINEAR_POINTWISE)
+    def _linear_pointwise_flops(x_shape, w_shape, *args, **kwargs) -> int:
+        """oneDNN's fused linear (MlpUpdate's hidden layers on CPU): 2 M N K, like addmm."""
+        return 2 * (x_shape[0] * x_shape[1]) * w_shape[0] if len(x_shape) == 2 else 0
+
+
 def flops_per_gradient_step(model: TD3) -> float:
     delay = model.policy_delay
     with FlopCounterMode(display=False) as counter:
@@ -93,6 +103,8 @@ class _MatmulRecorder(TorchDispatchMode):
     """Records every matrix product (op, argument shapes, strides and dtypes) dispatched while active."""
 
     OPS = {th.ops.aten.mm.default, th.ops.aten.addmm.default, th.ops.aten.bmm.default, th.ops.aten.baddbmm.default}
+    if _LINEAR_POINTWISE is not None:
+        OPS.add(_LINEAR_POINTWISE.default)
 
     def __init__(self) -> None:
         super().__init__()

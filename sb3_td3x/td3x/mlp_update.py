@@ -81,8 +81,9 @@ _LINEAR_POINTWISE = _mkldnn_linear_relu() if th.backends.mkldnn.is_available() e
 def _linear_relu(x: th.Tensor, weight: th.Tensor, bias: th.Tensor) -> th.Tensor:
     """relu(x W^T + b). On a CPU, oneDNN's linear with the ReLU fused into it (what torch.compile's CPU backend
     calls): one pass over the output instead of two, and faster than MKL's addmm at these sizes (0.24 against 0.29 ms
-    for 256 x 400 x 300 in fp32 on the 2-core benchmark machine)."""
-    if _LINEAR_POINTWISE is not None and x.device.type == "cpu":
+    for 256 x 400 x 300 in fp32 on the 2-core benchmark machine). Under torch.compile, addmm and relu (Inductor
+    lowers them itself)."""
+    if _LINEAR_POINTWISE is not None and x.device.type == "cpu" and not th.compiler.is_compiling():
         return _LINEAR_POINTWISE(x, weight, bias, "relu", [], "")
     return th.addmm(bias, x, weight.t()).relu_()
 
@@ -242,21 +243,8 @@ class MlpStack:
         copy.flat.copy_(self.store.flat)
         return copy.views[0::2], copy.views[1::2]
 
-    def grad_buffers(self, dtype: th.dtype) -> tuple[list[th.Tensor], list[th.Tensor]]:
-        """Buffers shaped like the weights and biases, in ``dtype``, for the backward pass to write into."""
-        buffers = self._grads.get(dtype)
-        if buffers is None:
-            buffers = self._grads[dtype] = FlatTensors(self._shapes(), dtype, self.store.flat.device)
-        return buffers.views[0::2], buffers.views[1::2]
-
-    def set_grads(self, dtype: th.dtype) -> None:
-        """``param.grad`` of every parameter: views of the gradients written by the backward pass in ``dtype``, cast
-        to the parameters' dtype (one operation) when they differ."""
-        param_dtype = self.store.flat.dtype
-        self.grad_buffers(param_dtype)
-        if dtype != param_dtype:
-            self._grads[param_dtype].flat.copy_(self._grads[dtype].flat)
-        weight_grads, bias_grads = self.grad_buffers(param_dtype)
+    def assign_grads(self, weight_grads: list[th.Tensor], bias_grads: list[th.Tensor]) -> None:
+        """``param.grad`` of every parameter: its view of the stacked gradients (shaped like the weights)."""
         for i, net in enumerate(self.layers):
             for depth, lin in enumerate(net):
                 lin.weight.grad = weight_grads[depth][i]
@@ -276,28 +264,132 @@ class MlpStack:
             h = th.baddbmm(biases.unsqueeze(1), h, weights.mT)
         return h, inputs
 
-    def backward(self, grad_out: th.Tensor, inputs: list[th.Tensor], all_weights: list[th.Tensor]) -> None:
-        """Weight and bias gradients from d loss / d output (n, batch, out), written into :meth:`grad_buffers`."""
-        weight_grads, bias_grads = self.grad_buffers(grad_out.dtype)
+    @staticmethod
+    def backward(
+        grad_out: th.Tensor, inputs: list[th.Tensor], all_weights: list[th.Tensor]
+    ) -> tuple[list[th.Tensor], list[th.Tensor]]:
+        """Weight and bias gradients, stacked like the weights, in fp32, from d loss / d output (n, batch, out)."""
+        weight_grads: list[th.Tensor] = []
+        bias_grads: list[th.Tensor] = []
         grad = grad_out
-        for depth in range(len(all_weights) - 1, 0, -1):
-            h = inputs[depth]
-            th.bmm(grad.mT, h, out=weight_grads[depth])
-            th.sum(grad, dim=1, out=bias_grads[depth])
-            grad = _relu_backward(_matmul(grad, all_weights[depth]), h, 0)
-        x = inputs[0]
-        th.bmm(grad.mT, x.expand(grad.shape[0], *x.shape), out=weight_grads[0])
-        th.sum(grad, dim=1, out=bias_grads[0])
+        for depth in range(len(all_weights) - 1, -1, -1):
+            h = inputs[depth] if depth > 0 else inputs[0].expand(grad.shape[0], *inputs[0].shape)
+            weight_grads.append(th.bmm(grad.mT, h).float())
+            bias_grads.append(grad.sum(dim=1).float())
+            if depth > 0:
+                grad = _relu_backward(_matmul(grad, all_weights[depth]), h, 0)
+        return weight_grads[::-1], bias_grads[::-1]
+
+
+Weights = tuple[list[th.Tensor], list[th.Tensor]]
+
+
+def _in(dtype: th.dtype, weights: Weights) -> Weights:
+    """Weights and biases in the compute dtype (as given when they already are, as MlpUpdate passes them)."""
+    if weights[0][0].dtype == dtype:
+        return weights
+    return [w.to(dtype) for w in weights[0]], [b.to(dtype) for b in weights[1]]
+
+
+def _actor_forward(weights: Weights, obs: th.Tensor) -> tuple[th.Tensor, list[th.Tensor]]:
+    """pi(s) in [-1, 1] and each layer's input, from the actor's stacked (1, out, in) weights."""
+    inputs = [obs]
+    h = obs
+    for w, b in zip(weights[0][:-1], weights[1][:-1]):
+        h = _linear_relu(h, w[0], b[0])
+        inputs.append(h)
+    return th.addmm(weights[1][-1][0], h, weights[0][-1][0].t()).tanh_(), inputs
+
+
+def critic_gradients(
+    batch: tuple[th.Tensor, ...],
+    discounts: th.Tensor | float,
+    noise: th.Tensor | None,
+    noise_clip: float,
+    clipped_double_q: bool,
+    actor_target: Weights,
+    critic_target: Weights,
+    critic: Weights,
+    dtype: th.dtype,
+) -> tuple[list[th.Tensor], list[th.Tensor], dict[str, th.Tensor]]:
+    """Steps 5 to 11 and the critics' gradients: a pure function of its inputs (so it can be compiled).
+
+    :param batch: (observations, actions, next_observations, rewards, dones)
+    :param noise: the target policy smoothing noise before clipping, sigma N(0, 1), or None without smoothing
+    :return: the critics' weight and bias gradients (fp32, stacked like the weights) and the logged statistics
+    """
+    obs, actions, next_obs, rewards, dones = batch
+    actor_target, critic_target, critic = _in(dtype, actor_target), _in(dtype, critic_target), _in(dtype, critic)
+    next_obs = next_obs.to(dtype)
+    next_actions, _ = _actor_forward(actor_target, next_obs)  # step 5
+    if noise is not None:  # step 6
+        next_actions = next_actions + noise.clamp(-noise_clip, noise_clip)
+    next_actions = next_actions.clamp(-1.0, 1.0)
+    next_q, _ = MlpStack.forward(th.cat([next_obs, next_actions], dim=1), *critic_target)  # step 7
+    next_q = next_q.min(dim=0).values if clipped_double_q else next_q[0]  # step 8
+    target_q = rewards + (1.0 - dones) * discounts * next_q.float()  # step 9
+    obs_actions = th.cat([obs, actions], dim=1).to(dtype)
+    current_q, inputs = MlpStack.forward(obs_actions, *critic)  # step 10
+    td_errors = current_q.float() - target_q.unsqueeze(0)  # (n_critics, batch, 1)
+    loss = td_errors.square().mean(dim=(1, 2)).sum()  # step 11: sum_i MSE(Q_i, y)
+    # d loss / d Q_i = 2 (Q_i - y) / batch
+    grads = MlpStack.backward((td_errors * (2.0 / td_errors.shape[1])).to(dtype), inputs, critic[0])
+    info = {"critic_loss": loss, "target_q": target_q.mean()}
+    q_means = current_q.float().mean(dim=(1, 2))
+    for i in range(current_q.shape[0]):
+        info[f"q{i + 1}"] = q_means[i]
+    return grads[0], grads[1], info
+
+
+def actor_gradients(
+    obs: th.Tensor, actor: Weights, critic: Weights, dtype: th.dtype
+) -> tuple[list[th.Tensor], list[th.Tensor], th.Tensor]:
+    """Step 13's gradient: J = -mean Q_1(s, pi(s)), back through the first critic to the action only.
+
+    :return: the actor's weight and bias gradients (fp32, stacked like the weights) and the loss
+    """
+    actor, critic = _in(dtype, actor), _in(dtype, critic)
+    obs = obs.to(dtype)
+    actions, actor_inputs = _actor_forward(actor, obs)
+    weights, biases = [w[0] for w in critic[0]], [b[0] for b in critic[1]]
+    h = th.cat([obs, actions], dim=1)
+    critic_inputs = []
+    for w, b in zip(weights[:-1], biases[:-1]):
+        h = _linear_relu(h, w, b)
+        critic_inputs.append(h)
+    q = th.addmm(biases[-1], h, weights[-1].t()).float()  # (batch, 1)
+    loss = -q.mean()
+    # d J / d Q_1 = -1 / batch, back through the critic's layers to its input
+    grad = th.full_like(q, -1.0 / q.shape[0]).to(dtype)
+    for depth in range(len(weights) - 1, 0, -1):
+        grad = _relu_backward(_matmul(grad, weights[depth]), critic_inputs[depth - 1], 0)
+    grad = grad @ weights[0][:, obs.shape[1] :]  # d J / d a: the action columns of the first layer only
+    grad = _tanh_backward(grad, actions)
+    weight_grads: list[th.Tensor] = []
+    bias_grads: list[th.Tensor] = []
+    for depth in range(len(actor[0]) - 1, -1, -1):
+        h = actor_inputs[depth]
+        weight_grads.append((grad.t() @ h).float().unsqueeze(0))
+        bias_grads.append(grad.sum(dim=0).float().unsqueeze(0))
+        if depth > 0:
+            grad = _relu_backward(grad @ actor[0][depth][0], h, 0)
+    return weight_grads[::-1], bias_grads[::-1], loss
 
 
 class MlpUpdate:
     """Steps 5 to 15 of TD3 for MLP policies, gradients by hand (see the module's docstring).
 
     Called as ``update(batch, update_actor)``, like :meth:`TD3X.update_from_batch`, and returns the same statistics.
+    With ``compile=True`` (``compile_update=True``), :func:`critic_gradients` and :func:`actor_gradients` are compiled
+    with ``torch.compile`` (one graph each); sampling, the random numbers, the optimizers and the target updates stay
+    eager.
     """
 
-    def __init__(self, model: TD3X):
+    def __init__(self, model: TD3X, compile: bool = False):
         self.model = model
+        self._critic_gradients = th.compile(critic_gradients, dynamic=False) if compile else critic_gradients
+        self._actor_gradients = th.compile(actor_gradients, dynamic=False) if compile else actor_gradients
+        self.compiled = compile
         self.actor = MlpStack([_mlp_linears(model.actor.mu, nn.Tanh)])  # type: ignore[list-item]
         self.actor_target = MlpStack([_mlp_linears(model.actor_target.mu, nn.Tanh)])  # type: ignore[list-item]
         self.critic = MlpStack([_mlp_linears(q, None) for q in model.critic.q_networks])  # type: ignore[misc]
@@ -352,78 +444,39 @@ class MlpUpdate:
         self.model.update_actor_target()  # step 14
         return critic_info, actor_info
 
-    @staticmethod
-    def _actor_forward(
-        weights: list[th.Tensor], biases: list[th.Tensor], obs: th.Tensor
-    ) -> tuple[th.Tensor, list[th.Tensor]]:
-        """pi(s) in [-1, 1] and each layer's input, from the actor's stacked (1, out, in) weights."""
-        inputs = [obs]
-        h = obs
-        for w, b in zip(weights[:-1], biases[:-1]):
-            h = _linear_relu(h, w[0], b[0])
-            inputs.append(h)
-        return th.addmm(biases[-1][0], h, weights[-1][0].t()).tanh_(), inputs
-
-    def _target_q(self, batch: Any) -> th.Tensor:
-        """Steps 5 to 9: y = r + gamma (1 - d) min_i Q'_i(s', clip(pi'(s') + eps, -1, 1))."""
-        model = self.model
-        next_obs = batch.next_observations.to(self.dtype)
-        next_actions, _ = self._actor_forward(*self.actor_target.cast(self.dtype), next_obs)  # step 5
-        if model.target_policy_smoothing:  # step 6
-            noise = th.randn_like(next_actions) * model.target_policy_noise
-            next_actions = next_actions + noise.clamp(-model.target_noise_clip, model.target_noise_clip)
-        next_actions = next_actions.clamp(-1.0, 1.0)
-        obs_actions = th.cat([next_obs, next_actions], dim=1)
-        next_q, _ = MlpStack.forward(obs_actions, *self.critic_target.cast(self.dtype))  # step 7
-        next_q = next_q.min(dim=0).values if model.clipped_double_q else next_q[0]  # step 8
-        discounts = batch.discounts if getattr(batch, "discounts", None) is not None else model.gamma
-        return batch.rewards + (1.0 - batch.dones) * discounts * next_q.float()  # step 9
+    def _weights(self, stack: MlpStack) -> Weights:
+        # Cast here, one operation per stack, also when compiled: casts of the flat tensor's views inside the
+        # compiled graph gave NaN actor outputs with bf16 (torch 2.13's Inductor on CPU).
+        return stack.cast(self.dtype)
 
     def _update_critics(self, batch: Any) -> dict[str, th.Tensor]:
-        target_q = self._target_q(batch)  # steps 5-9
-        obs_actions = th.cat([batch.observations, batch.actions], dim=1).to(self.dtype)
-        weights, biases = self.critic.cast(self.dtype)
-        current_q, inputs = MlpStack.forward(obs_actions, weights, biases)  # step 10
-        td_errors = current_q.float() - target_q.unsqueeze(0)  # (n_critics, batch, 1)
-        loss = td_errors.square().mean(dim=(1, 2)).sum()  # step 11: sum_i MSE(Q_i, y)
-        # d loss / d Q_i = 2 (Q_i - y) / batch
-        self.critic.backward((td_errors * (2.0 / td_errors.shape[1])).to(self.dtype), inputs, weights)
-        self.critic.set_grads(self.dtype)
-        optimizer_step(self.model.critic.optimizer)  # step 12
-        info = {"critic_loss": loss, "target_q": target_q.mean()}
-        q_means = current_q.float().mean(dim=(1, 2))
-        for i in range(current_q.shape[0]):
-            info[f"q{i + 1}"] = q_means[i]
+        """Steps 5 to 12."""
+        model = self.model
+        noise = None
+        if model.target_policy_smoothing:  # step 6's noise, drawn as randn_like(pi'(s')) draws it
+            shape = (batch.next_observations.shape[0], model.action_space.shape[0])  # type: ignore[index]
+            noise = th.randn(shape, dtype=self.dtype, device=batch.rewards.device) * model.target_policy_noise
+        discounts = batch.discounts if getattr(batch, "discounts", None) is not None else model.gamma
+        weight_grads, bias_grads, info = self._critic_gradients(
+            (batch.observations, batch.actions, batch.next_observations, batch.rewards, batch.dones),
+            discounts,
+            noise,
+            float(model.target_noise_clip),
+            bool(model.clipped_double_q),
+            self._weights(self.actor_target),
+            self._weights(self.critic_target),
+            self._weights(self.critic),
+            self.dtype,
+        )
+        self.critic.assign_grads(weight_grads, bias_grads)
+        optimizer_step(model.critic.optimizer)  # step 12
         return info
 
     def _update_actor(self, obs: th.Tensor) -> dict[str, th.Tensor]:
-        """Step 13: J = -mean Q_1(s, pi(s)); the gradient reaches the actor through the action only."""
-        obs = obs.to(self.dtype)
-        actor_weights, actor_biases = self.actor.cast(self.dtype)
-        actions, actor_inputs = self._actor_forward(actor_weights, actor_biases, obs)
-        critic_weights, critic_biases = self.critic.cast(self.dtype)  # after the critics' step
-        weights, biases = [w[0] for w in critic_weights], [b[0] for b in critic_biases]
-        h = th.cat([obs, actions], dim=1)
-        critic_inputs = []
-        for w, b in zip(weights[:-1], biases[:-1]):
-            h = _linear_relu(h, w, b)
-            critic_inputs.append(h)
-        q = th.addmm(biases[-1], h, weights[-1].t()).float()  # (batch, 1)
-        loss = -q.mean()
-        # d J / d Q_1 = -1 / batch, back through the critic's layers to its input
-        grad = th.full_like(q, -1.0 / q.shape[0]).to(self.dtype)
-        for depth in range(len(weights) - 1, 0, -1):
-            grad = _relu_backward(_matmul(grad, weights[depth]), critic_inputs[depth - 1], 0)
-        obs_dim = obs.shape[1]
-        grad = grad @ weights[0][:, obs_dim:]  # d J / d a: the action columns of the first layer only
-        grad = _tanh_backward(grad, actions)
-        weight_grads, bias_grads = self.actor.grad_buffers(self.dtype)
-        for depth in range(len(actor_weights) - 1, -1, -1):
-            h = actor_inputs[depth]
-            th.mm(grad.t(), h, out=weight_grads[depth][0])
-            th.sum(grad, dim=0, out=bias_grads[depth][0])
-            if depth > 0:
-                grad = _relu_backward(grad @ actor_weights[depth][0], h, 0)
-        self.actor.set_grads(self.dtype)
+        """Step 13 (with the critics as updated by step 12)."""
+        weight_grads, bias_grads, loss = self._actor_gradients(
+            obs, self._weights(self.actor), self._weights(self.critic), self.dtype
+        )
+        self.actor.assign_grads(weight_grads, bias_grads)
         optimizer_step(self.model.actor.optimizer)
         return {"actor_loss": loss}

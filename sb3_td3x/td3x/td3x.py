@@ -140,9 +140,11 @@ class TD3X(OffPolicyAlgorithm):
         first critic target only, as DDPG does
     :param bf16: opt-in: run the forward passes of the update under bf16 autocast (AMX on recent x86 CPUs,
         tensor cores on GPUs), with fp32 weights, optimizer states and losses
-    :param compile_update: opt-in: ``torch.compile`` steps 5 to 15 into one graph per kind of step, with the gradients
-        from ``torch.func`` and Adam's update rule on the optimizers' own states (see
-        :class:`~sb3_td3x.td3x.acceleration.FunctionalCompiledUpdate`); the first steps pay the compilation
+    :param compile_update: opt-in: ``torch.compile`` the update. In fp32 with ``mlp_update`` applicable, the
+        hand-written gradients of :class:`~sb3_td3x.td3x.mlp_update.MlpUpdate` are compiled (one graph for the
+        critics', one for the actor's); otherwise steps 5 to 15 are, with the gradients from ``torch.func`` and
+        Adam's update rule on the optimizers' own states (:class:`~sb3_td3x.td3x.acceleration.FunctionalCompiledUpdate`).
+        The first steps pay the compilation
     :param cuda_graph: opt-in, CUDA only: capture the whole gradient step, sampling included, in CUDA graphs and
         replay them (no kernel-launch or Python overhead per step)
     :param mlp_update: for ReLU MLP policies with the hooks of steps 5 to 13 as written, compute the gradients by hand
@@ -357,7 +359,7 @@ class TD3X(OffPolicyAlgorithm):
             self.replay_buffer.enable_static_sampling()
         self._step_fn: Any = None
         # Which update train() runs, set at its first call: "mlp" (MlpUpdate), "autograd" (the hooks as written),
-        # "compiled" or "cuda_graph".
+        # "compiled_mlp" (MlpUpdate compiled), "compiled" (the hooks compiled) or "cuda_graph".
         self.update_path: str | None = None
         self._create_aliases()
         self._critic_lr_schedule = None if self.critic_learning_rate is None else FloatSchedule(self.critic_learning_rate)
@@ -462,7 +464,11 @@ class TD3X(OffPolicyAlgorithm):
                 self.update_path = "compiled"
                 # Sampling stays eager: the buffer's size changes at every step.
                 reason = FunctionalCompiledUpdate.why_not(self)
-                if reason is None:
+                if getattr(self, "mlp_update", True) and not self.bf16 and MlpUpdate.why_not(self) is None:
+                    # The hand-written gradients, compiled (fp32 only: compiled with bf16 they gave NaN, torch 2.13).
+                    update = MlpUpdate(self, compile=True)
+                    self.update_path = "compiled_mlp"
+                elif reason is None:
                     update = FunctionalCompiledUpdate(self)
                 else:
                     warnings.warn(
