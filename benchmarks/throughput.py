@@ -99,6 +99,10 @@ def flops_per_gradient_step(model: TD3) -> float:
     return counter.get_total_flops() / delay
 
 
+class _Listed(tuple):
+    """A list argument (oneDNN linear's scalars and algorithm), hashable for the record, a list again for the call."""
+
+
 class _MatmulRecorder(TorchDispatchMode):
     """Records every matrix product (op, argument shapes, strides and dtypes) dispatched while active."""
 
@@ -113,7 +117,11 @@ class _MatmulRecorder(TorchDispatchMode):
     def __torch_dispatch__(self, func, types, args=(), kwargs=None):
         kwargs = kwargs or {}
         if func in self.OPS:
-            signature = tuple((tuple(a.shape), a.stride(), a.dtype) if isinstance(a, th.Tensor) else a for a in args)
+            signature = tuple(
+                (tuple(a.shape), a.stride(), a.dtype) if isinstance(a, th.Tensor) else _Listed(a) if isinstance(a, list)
+                else a
+                for a in args
+            )
             self.calls.append((func, signature, tuple(sorted(kwargs.items()))))
         return func(*args, **kwargs)
 
@@ -138,7 +146,8 @@ def matmul_floor_ms(model: TD3, reps: int = 50) -> float:
         key = (func, signature, kwargs)
         if key not in timed:
             args = [
-                _random_strided(*a, device=device) if isinstance(a, tuple) and len(a) == 3 and isinstance(a[2], th.dtype)
+                list(a) if isinstance(a, _Listed)
+                else _random_strided(*a, device=device) if isinstance(a, tuple) and len(a) == 3 and isinstance(a[2], th.dtype)
                 else a
                 for a in signature
             ]
