@@ -3,20 +3,22 @@
 For the networks TD3 is run with (ReLU MLPs, a tanh actor, flat observations) the backward passes are a few matrix
 products, so :class:`MlpUpdate` computes them itself instead of recording an autograd graph:
 
-- the critics are evaluated as one ensemble: their weights live in stacked tensors (``[n_critics, out, in]``) that
-  the critics' own parameters are views of, so both critics (and both critic targets) go through each layer in one
-  batched product (``baddbmm``), forward and backward, and the first layer's products are one ``addmm``;
+- the critics are evaluated as one ensemble: their weights live in stacked tensors (``[n_critics, out, in]``, views
+  of one flat tensor) that the critics' own parameters are views of, so both critics (and both critic targets) go
+  through each layer in one batched product (``baddbmm``, the shared input broadcast), forward and backward;
 - the actor loss back-propagates through the first critic to the action only, with no gradient for the critic's
   weights and none for the observation columns of its first layer;
-- ReLU and tanh backwards are ``threshold_backward`` and ``tanh_backward``, the kernels autograd runs;
+- ReLU and tanh backwards are ``threshold_backward`` and ``tanh_backward``, the kernels autograd runs; on a CPU the
+  2-D hidden layers are oneDNN's linear with the ReLU fused into it;
 - the optimizers are the model's own: gradients are written into ``.grad`` and ``optimizer.step()`` is called, so any
   optimizer, schedule, save and load behave as with autograd.
 
 It computes what :meth:`TD3X.update_from_batch` computes (the tests compare both to float rounding), from the same
 batch and the same random numbers, so it replaces it only where that holds: :meth:`MlpUpdate.why_not` lists the
 conditions (no hook of steps 5 to 13 overridden, ReLU MLPs with a flatten features extractor). With ``bf16=True``
-the products run in bf16 with fp32 weights, gradients and optimizer, as under autocast. Anything
-else runs the hooks with autograd, as before. Steps 14 and 15 are the model's own hooks, overridden or not.
+the products run in bf16 with fp32 weights, gradients and optimizer, as under autocast. Anything else runs the hooks
+with autograd, as before. Steps 14 and 15 are the model's own hooks, overridden or not. :func:`critic_gradients` and
+:func:`actor_gradients` are pure functions of their inputs, which ``compile_update=True`` compiles.
 """
 
 from __future__ import annotations
@@ -196,7 +198,6 @@ class MlpStack:
     def __init__(self, networks: list[list[nn.Linear]]):
         self.layers = networks
         self._low_precision: dict[th.dtype, FlatTensors] = {}
-        self._grads: dict[th.dtype, FlatTensors] = {}
         self._bind()
 
     def _shapes(self) -> list[tuple[int, ...]]:
@@ -220,7 +221,6 @@ class MlpStack:
                 lin.bias.data = self.biases[depth][i]
         self._pointers = self._current_pointers()
         self._low_precision.clear()
-        self._grads.clear()
 
     def _current_pointers(self) -> list[int]:
         return [p.data_ptr() for p in self.parameters()]
@@ -454,7 +454,7 @@ class MlpUpdate:
         model = self.model
         noise = None
         if model.target_policy_smoothing:  # step 6's noise, drawn as randn_like(pi'(s')) draws it
-            shape = (batch.next_observations.shape[0], model.action_space.shape[0])  # type: ignore[index]
+            shape = (batch.next_observations.shape[0], self.actor_target.weights[-1].shape[1])  # (batch, action_dim)
             noise = th.randn(shape, dtype=self.dtype, device=batch.rewards.device) * model.target_policy_noise
         discounts = batch.discounts if getattr(batch, "discounts", None) is not None else model.gamma
         weight_grads, bias_grads, info = self._critic_gradients(
