@@ -27,7 +27,7 @@ from sb3_td3x.td3x.acceleration import (
     autocast_context,
     compiled_step,
 )
-from sb3_td3x.td3x.mlp_update import MlpUpdate, mlp_actor_layers
+from sb3_td3x.td3x.mlp_update import MlpUpdate, addmm_relu, mlp_actor_layers, relu_mlp
 from sb3_td3x.td3x.policies import CnnPolicy, MlpPolicy, MultiInputPolicy, TD3XPolicy
 
 SelfTD3X = TypeVar("SelfTD3X", bound="TD3X")
@@ -57,11 +57,8 @@ class _DirectMlpActor:
         self.layers = layers
 
     def __call__(self, obs: th.Tensor) -> th.Tensor:
-        h = obs.float()
-        for layer in self.layers[:-1]:
-            h = th.addmm(layer.bias, h, layer.weight.t()).relu_()
-        last = self.layers[-1]
-        return th.addmm(last.bias, h, last.weight.t()).tanh_()
+        weights, biases = [layer.weight for layer in self.layers], [layer.bias for layer in self.layers]
+        return relu_mlp(weights, biases, obs.float(), linear_relu=addmm_relu)[0].tanh_()
 
 
 class TD3X(OffPolicyAlgorithm):
@@ -463,12 +460,11 @@ class TD3X(OffPolicyAlgorithm):
             elif self.compile_update:
                 self.update_path = "compiled"
                 # Sampling stays eager: the buffer's size changes at every step.
-                reason = FunctionalCompiledUpdate.why_not(self)
                 if getattr(self, "mlp_update", True) and not self.bf16 and MlpUpdate.why_not(self) is None:
                     # The hand-written gradients, compiled (fp32 only: compiled with bf16 they gave NaN, torch 2.13).
                     update = MlpUpdate(self, compile=True)
                     self.update_path = "compiled_mlp"
-                elif reason is None:
+                elif (reason := FunctionalCompiledUpdate.why_not(self)) is None:
                     update = FunctionalCompiledUpdate(self)
                 else:
                     warnings.warn(
@@ -695,12 +691,11 @@ class TD3X(OffPolicyAlgorithm):
         values = th.stack([info[key].float() for keys, infos in groups for info in infos for key in keys]).tolist()
         start = 0
         for keys, infos in groups:
-            n, k = len(infos), len(keys)
+            block = values[start : start + len(infos) * len(keys)]  # step after step, keys in order
             for j, key in enumerate(keys):
-                mean = sum(values[start + i * k + j] for i in range(n)) / n
                 name = key if key.endswith("loss") else f"{key}_mean"
-                self.logger.record(f"train/{name}", mean)
-            start += n * k
+                self.logger.record(f"train/{name}", sum(block[j :: len(keys)]) / len(infos))
+            start += len(block)
 
     def learn(
         self: SelfTD3X,
