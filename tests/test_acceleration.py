@@ -102,13 +102,13 @@ def test_compiled_update_matches_eager_steps(variant):
         eager.logger.name_to_value["train/critic_loss"], rel=1e-4)
 
 
-@pytest.mark.parametrize("bf16", [False, True])
-def test_compiled_update_stays_finite_in_a_run(bf16):
-    """A short real run of each compiled path (MlpUpdate compiled in fp32; with bf16, the hooks made functional:
-    MlpUpdate compiled in bf16 returned NaN from its first step on Pendulum with torch 2.13, so it is not used)."""
-    model = small(compile_update=True, bf16=bf16, policy_kwargs={"net_arch": [64, 64]})
+@pytest.mark.parametrize("bf16, mlp_update", [(False, True), (True, True), (True, False)])
+def test_compiled_update_stays_finite_in_a_run(bf16, mlp_update):
+    """A short real run of each compiled path: MlpUpdate compiled (fp32 and bf16), and the hooks made functional
+    (bf16)."""
+    model = small(compile_update=True, bf16=bf16, mlp_update=mlp_update, policy_kwargs={"net_arch": [64, 64]})
     model.learn(60)
-    assert model.update_path == ("compiled" if bf16 else "compiled_mlp")
+    assert model.update_path == ("compiled_mlp" if mlp_update else "compiled")
     assert all(p.isfinite().all() for p in model.policy.parameters())
     assert np.isfinite(model.logger.name_to_value["train/critic_loss"])
 
@@ -245,12 +245,14 @@ def test_bf16_learns_pendulum():
 
 @pytest.mark.slow
 @pytest.mark.timeout(900)
-def test_compiled_update_learns_pendulum():
-    model = TD3X("MlpPolicy", gym.make("Pendulum-v1"), learning_starts=1_000, compile_update=True, seed=1,
+@pytest.mark.parametrize("bf16", [False, True])
+def test_compiled_update_learns_pendulum(bf16):
+    model = TD3X("MlpPolicy", gym.make("Pendulum-v1"), learning_starts=1_000, compile_update=True, bf16=bf16, seed=1,
                  policy_kwargs=dict(net_arch=[256, 256]), action_noise=NormalActionNoise(np.zeros(1), 0.1 * np.ones(1)))
     model.learn(8_000)
+    assert model.update_path == "compiled_mlp"
     mean_return, _ = evaluate_policy(model, Monitor(gym.make("Pendulum-v1")), n_eval_episodes=10, deterministic=True)
-    print(f"compile: mean return {mean_return:.1f}")
+    print(f"compile (bf16={bf16}): mean return {mean_return:.1f}")
     assert mean_return >= -250
 
 

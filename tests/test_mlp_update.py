@@ -196,3 +196,32 @@ def test_train_flushes_denormals_only_inside_train():
     assert seen == [True, True]
     tiny = th.full((8,), 1e-20)
     assert (tiny * tiny > 0).all()
+
+
+def test_compiled_bf16_mlp_update_stays_finite_over_uninitialised_memory():
+    """compile_update=True, bf16=True runs MlpUpdate compiled, and never reads uninitialised memory.
+
+    Regression: with the observations cast inside the compiled graph, the actor's first bf16 product read the
+    action columns of the concatenation [s', a'] before they were written (see ``compute_dtype_batch``), so NaN
+    bytes left in freed memory came out as a NaN target. Freed memory is filled with NaN before every step here.
+    """
+    model = TD3X("MlpPolicy", "Pendulum-v1", policy_kwargs={"net_arch": [64, 64]}, learning_starts=0, seed=0,
+                 batch_size=256, compile_update=True, bf16=True)
+    model.set_logger(configure(None, []))
+    data = [
+        ReplayBufferSamples(*(th.cat([a] * 8) for a in batch[:5]))  # 256 rows: products large enough for AMX tiles
+        for batch in batches(24)
+    ]
+    it = iter(data)
+
+    def sample(batch_size):
+        for size in (256 * 4, 256 * 8, 256 * 64, 256 * 300, 256 * 400):
+            th.full((size,), float("nan"), dtype=th.bfloat16)  # freed at once, for the allocator to hand out again
+        return next(it)
+
+    model.sample_batch = sample
+    with th._inductor.config.patch(fallback_random=True):
+        model.train(gradient_steps=24, batch_size=256)
+    assert model.update_path == "compiled_mlp"
+    assert all(p.isfinite().all() for p in model.policy.parameters())
+    assert np.isfinite(model.logger.name_to_value["train/critic_loss"])

@@ -306,6 +306,25 @@ def _actor_forward(weights: Weights, obs: th.Tensor) -> tuple[th.Tensor, list[th
     return out.tanh_(), inputs
 
 
+def compute_dtype_batch(batch: Any, dtype: th.dtype) -> tuple[th.Tensor, ...]:
+    """(observations, actions, next_observations, rewards, dones) of a replay batch, the first three in ``dtype``.
+
+    Cast before, not inside, the compiled functions: in bf16 on a CPU with AMX (torch 2.13), a matrix product whose
+    left operand is a row-strided view (a row stride larger than its width) reads the columns past the view's width;
+    they are multiplied by zeros, so finite values there are harmless but NaN ones are not. Compiled, an observation
+    cast inside the graph is written straight into the concatenation ``[s, a]`` as such a view, and read by the
+    actor's first product while the action columns are still uninitialised memory: NaN, now and then, from the first
+    step (``tests/test_mlp_update.py`` shows both). An input of the graph is copied into the concatenation instead.
+    """
+    return (
+        batch.observations.to(dtype),
+        batch.actions.to(dtype),
+        batch.next_observations.to(dtype),
+        batch.rewards,
+        batch.dones,
+    )
+
+
 def critic_gradients(
     batch: tuple[th.Tensor, ...],
     discounts: th.Tensor | float,
@@ -318,7 +337,8 @@ def critic_gradients(
 ) -> tuple[list[th.Tensor], list[th.Tensor], dict[str, th.Tensor]]:
     """Steps 5 to 11 and the critics' gradients: a pure function of its inputs (so it can be compiled).
 
-    The products run in the weights' dtype (bf16 with ``bf16=True``): pass them already cast.
+    The products run in the weights' dtype (bf16 with ``bf16=True``): pass the weights, the observations and the
+    actions already in it (see :func:`compute_dtype_batch`); rewards and dones stay fp32.
 
     :param batch: (observations, actions, next_observations, rewards, dones)
     :param noise: the target policy smoothing noise before clipping, sigma N(0, 1), or None without smoothing
@@ -326,7 +346,6 @@ def critic_gradients(
     """
     obs, actions, next_obs, rewards, dones = batch
     dtype = critic[0][0].dtype
-    next_obs = next_obs.to(dtype)
     next_actions, _ = _actor_forward(actor_target, next_obs)  # step 5
     if noise is not None:  # step 6
         next_actions = next_actions + noise.clamp(-noise_clip, noise_clip)
@@ -334,7 +353,7 @@ def critic_gradients(
     next_q, _ = MlpStack.forward(th.cat([next_obs, next_actions], dim=1), *critic_target)  # step 7
     next_q = next_q.min(dim=0).values if clipped_double_q else next_q[0]  # step 8
     target_q = rewards + (1.0 - dones) * discounts * next_q.float()  # step 9
-    obs_actions = th.cat([obs, actions], dim=1).to(dtype)
+    obs_actions = th.cat([obs, actions], dim=1)
     current_q, inputs = MlpStack.forward(obs_actions, *critic)  # step 10
     td_errors = current_q.float() - target_q.unsqueeze(0)  # (n_critics, batch, 1)
     loss = td_errors.square().mean(dim=(1, 2)).sum()  # step 11: sum_i MSE(Q_i, y)
@@ -350,12 +369,11 @@ def critic_gradients(
 def actor_gradients(obs: th.Tensor, actor: Weights, critic: Weights) -> tuple[list[th.Tensor], list[th.Tensor], th.Tensor]:
     """Step 13's gradient: J = -mean Q_1(s, pi(s)), back through the first critic to the action only.
 
-    The products run in the weights' dtype: pass them already cast.
+    The products run in the weights' dtype: pass the weights and the observations already in it.
 
     :return: the actor's weight and bias gradients (fp32, stacked like the weights) and the loss
     """
     dtype = critic[0][0].dtype
-    obs = obs.to(dtype)
     actions, actor_inputs = _actor_forward(actor, obs)
     weights = [w[0] for w in critic[0]]
     q, critic_inputs = relu_mlp(weights, [b[0] for b in critic[1]], th.cat([obs, actions], dim=1))
@@ -446,8 +464,8 @@ class MlpUpdate:
         return critic_info, actor_info
 
     def _weights(self, stack: MlpStack) -> Weights:
-        # Cast here, one operation per stack, also when compiled: casts of the flat tensor's views inside the
-        # compiled graph gave NaN actor outputs with bf16 (torch 2.13's Inductor on CPU).
+        # Cast here, one operation per stack, also when compiled (the graph's inputs are then already in the
+        # compute dtype; see compute_dtype_batch for what a cast inside the graph can do in bf16).
         return stack.cast(self.dtype)
 
     def _update_critics(self, batch: Any) -> dict[str, th.Tensor]:
@@ -459,7 +477,7 @@ class MlpUpdate:
             noise = th.randn(shape, dtype=self.dtype, device=batch.rewards.device) * model.target_policy_noise
         discounts = batch.discounts if getattr(batch, "discounts", None) is not None else model.gamma
         weight_grads, bias_grads, info = self._critic_gradients(
-            (batch.observations, batch.actions, batch.next_observations, batch.rewards, batch.dones),
+            compute_dtype_batch(batch, self.dtype),
             discounts,
             noise,
             float(model.target_noise_clip),
@@ -475,7 +493,7 @@ class MlpUpdate:
     def _update_actor(self, obs: th.Tensor) -> dict[str, th.Tensor]:
         """Step 13 (with the critics as updated by step 12)."""
         weight_grads, bias_grads, loss = self._actor_gradients(
-            obs, self._weights(self.actor), self._weights(self.critic)
+            obs.to(self.dtype), self._weights(self.actor), self._weights(self.critic)
         )
         self.actor.assign_grads(weight_grads, bias_grads)
         optimizer_step(self.model.actor.optimizer)

@@ -460,8 +460,8 @@ class TD3X(OffPolicyAlgorithm):
             elif self.compile_update:
                 self.update_path = "compiled"
                 # Sampling stays eager: the buffer's size changes at every step.
-                if getattr(self, "mlp_update", True) and not self.bf16 and MlpUpdate.why_not(self) is None:
-                    # The hand-written gradients, compiled (fp32 only: compiled with bf16 they gave NaN, torch 2.13).
+                if getattr(self, "mlp_update", True) and MlpUpdate.why_not(self) is None:
+                    # The hand-written gradients, compiled.
                     update = MlpUpdate(self, compile=True)
                     self.update_path = "compiled_mlp"
                 elif (reason := FunctionalCompiledUpdate.why_not(self)) is None:
