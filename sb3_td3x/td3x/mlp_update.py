@@ -310,11 +310,12 @@ def compute_dtype_batch(batch: Any, dtype: th.dtype) -> tuple[th.Tensor, ...]:
     """(observations, actions, next_observations, rewards, dones) of a replay batch, the first three in ``dtype``.
 
     Cast before, not inside, the compiled functions: in bf16 on a CPU with AMX (torch 2.13), a matrix product whose
-    left operand is a row-strided view (a row stride larger than its width) reads the columns past the view's width;
-    they are multiplied by zeros, so finite values there are harmless but NaN ones are not. Compiled, an observation
-    cast inside the graph is written straight into the concatenation ``[s, a]`` as such a view, and read by the
-    actor's first product while the action columns are still uninitialised memory: NaN, now and then, from the first
-    step (``tests/test_mlp_update.py`` shows both). An input of the graph is copied into the concatenation instead.
+    left operand is a row-strided view (a row stride larger than its width) reads the columns past the view's width:
+    finite values there leave the result right, NaN ones make it NaN. Compiled, an observation cast inside the graph
+    is written straight into the concatenation ``[s, a]`` as such a view and read by the actor's first product while
+    the action columns are still uninitialised memory: a NaN target now and then, from the first step on (the
+    regression test is in ``tests/test_mlp_update.py``, the reproduction in docs/performance.md). An input of the
+    graph is copied into the concatenation instead.
     """
     return (
         batch.observations.to(dtype),
