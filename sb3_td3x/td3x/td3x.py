@@ -135,9 +135,10 @@ class TD3X(OffPolicyAlgorithm):
         DDPG's target action a' = pi_phi'(s')
     :param clipped_double_q: use the minimum over the critic targets in the TD target (step 8). ``False`` uses the
         first critic target only, as DDPG does
-    :param bf16: opt-in: run the forward passes of the update under bf16 autocast (AMX on recent x86 CPUs,
-        tensor cores on GPUs), with fp32 weights, optimizer states and losses
-    :param compile_update: opt-in: ``torch.compile`` the update. In fp32 with ``mlp_update`` applicable, the
+    :param bf16: opt-in: the matrix products of the update in bf16 (AMX on recent x86 CPUs, tensor cores on GPUs),
+        with fp32 weights, gradients, optimizer states and losses: ``MlpUpdate``'s products where it applies, the
+        forward passes under bf16 autocast otherwise
+    :param compile_update: opt-in: ``torch.compile`` the update. With ``mlp_update`` applicable (fp32 or bf16), the
         hand-written gradients of :class:`~sb3_td3x.td3x.mlp_update.MlpUpdate` are compiled (one graph for the
         critics', one for the actor's); otherwise steps 5 to 15 are, with the gradients from ``torch.func`` and
         Adam's update rule on the optimizers' own states (:class:`~sb3_td3x.td3x.acceleration.FunctionalCompiledUpdate`).
@@ -146,7 +147,7 @@ class TD3X(OffPolicyAlgorithm):
         replay them (no kernel-launch or Python overhead per step)
     :param mlp_update: for ReLU MLP policies with the hooks of steps 5 to 13 as written, compute the gradients by hand
         instead of with autograd (:class:`~sb3_td3x.td3x.mlp_update.MlpUpdate`: the same update, faster); when a hook
-        is overridden, or with ``bf16``, ``compile_update`` or ``cuda_graph``, the hooks run with autograd as before
+        is overridden, or with ``cuda_graph``, the hooks run with autograd as before (``update_path`` says which ran)
     :param flush_denormals: on a CPU, flush denormal floats to zero during ``train()`` on every torch thread
         (:func:`~sb3_td3x.common.denormals.flush_denormals`): Adam's second moment makes them from tiny gradients, and
         each costs a hundred cycles; the process's setting is restored after each call
