@@ -198,15 +198,17 @@ def test_train_flushes_denormals_only_inside_train():
     assert (tiny * tiny > 0).all()
 
 
-def test_compiled_bf16_mlp_update_stays_finite_over_uninitialised_memory():
-    """compile_update=True, bf16=True runs MlpUpdate compiled, and never reads uninitialised memory.
+@pytest.mark.parametrize("mlp_update", [True, False])
+def test_compiled_bf16_update_stays_finite_over_uninitialised_memory(mlp_update):
+    """compile_update=True, bf16=True (MlpUpdate compiled, or the hooks made functional) never reads uninitialised
+    memory.
 
     Regression: with the observations cast inside the compiled graph, the actor's first bf16 product read the
     action columns of the concatenation [s', a'] before they were written (see ``compute_dtype_batch``), so NaN
     bytes left in freed memory came out as a NaN target. Freed memory is filled with NaN before every step here.
     """
     model = TD3X("MlpPolicy", "Pendulum-v1", policy_kwargs={"net_arch": [64, 64]}, learning_starts=0, seed=0,
-                 batch_size=256, compile_update=True, bf16=True)
+                 batch_size=256, compile_update=True, bf16=True, mlp_update=mlp_update)
     model.set_logger(configure(None, []))
     data = [
         ReplayBufferSamples(*(th.cat([a] * 8) for a in batch[:5]))  # 256 rows: products large enough for AMX tiles
@@ -222,6 +224,6 @@ def test_compiled_bf16_mlp_update_stays_finite_over_uninitialised_memory():
     model.sample_batch = sample
     with th._inductor.config.patch(fallback_random=True):
         model.train(gradient_steps=24, batch_size=256)
-    assert model.update_path == "compiled_mlp"
+    assert model.update_path == ("compiled_mlp" if mlp_update else "compiled")
     assert all(p.isfinite().all() for p in model.policy.parameters())
     assert np.isfinite(model.logger.name_to_value["train/critic_loss"])
