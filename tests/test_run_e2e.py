@@ -19,6 +19,7 @@ from PIL import Image
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from sb3_td3x.experiment.checkpoints import META_FILE, MODEL_FILE, REPLAY_BUFFER_FILE, STATE_FILE
+from sb3_td3x.experiment.cli import threads_per_job
 from sb3_td3x.experiment.errors import TrainingDiverged
 from sb3_td3x.experiment.runner import run_experiment
 from sb3_td3x.experiment.schemas import compose_config
@@ -88,6 +89,10 @@ def test_run_py_writes_a_complete_run_folder(tmp_path):
     assert summary["final_mean_return"] == float(rows[-1]["mean_return"]) and summary["total_timesteps"] == 2000
     provenance = summary["provenance"]  # what the results pages cite: command, commit, machine, versions
     assert provenance["machine"]["cores"] >= 1 and provenance["versions"]["torch"] == torch.__version__
+    # A single run trains on all the cores torch would use by default (torch_threads=null).
+    default_threads = subprocess.run([sys.executable, "-c", "import torch; print(torch.get_num_threads())"], env=env,
+                                     check=True, capture_output=True, text=True, timeout=120).stdout.strip()
+    assert provenance["machine"]["torch_threads"] == int(default_threads)
     assert provenance["commit"] is None or len(provenance["commit"].removesuffix("-dirty")) == 40
     sessions = [json.loads(line) for line in (run_dir / "provenance.jsonl").read_text().splitlines()]
     assert len(sessions) == 1 and sessions[0]["at_step"] == 0 and sessions[0]["commit"] == provenance["commit"]
@@ -188,3 +193,13 @@ def make_nan_pendulum():
             return obs, (np.nan if NaNReward.steps > 600 else reward), terminated, truncated, info
 
     return NaNReward(gym.make("Pendulum-v1").unwrapped)
+
+
+@pytest.mark.parametrize(
+    "n_jobs, cores, threads",
+    [(-1, 2, 1), (-1, 16, 1), (1, 8, 8), (2, 8, 4), (3, 8, 2), (-2, 8, 1), (-5, 8, 2), (16, 2, 1), (None, 8, None)],
+)
+def test_multirun_jobs_share_the_cores(n_jobs, cores, threads):
+    """torch_threads=null in a multirun: the cores divided among the jobs joblib runs at once (None: one job at a
+    time, all cores)."""
+    assert threads_per_job(n_jobs, cores) == threads

@@ -138,7 +138,9 @@ class ExperimentConfig:
     total_timesteps: int = II("env.total_timesteps")
     resume: str | None = None  # a run folder to continue; the run goes on in that folder with its saved config
     run_dir: str = "runs/${env.name}/${algo.name}/seed${seed}/${now:%Y-%m-%d_%H-%M-%S}"
-    torch_threads: int | None = 1  # None: torch's default (all cores); 1 suits small MLPs and parallel seeds
+    # None: all cores for a single run; in a multirun, the cores shared among the jobs running at once (one each
+    # with the default launcher settings); in a sweep trial, 1. A number: exactly that.
+    torch_threads: int | None = None
     progress_bar: bool = True
 
 

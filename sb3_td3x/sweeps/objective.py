@@ -167,6 +167,8 @@ class TrialObjective:
 
         try:
             cfg = compose_config(self.config_dir, overrides)
+            if cfg.torch_threads is None:  # workers may share a machine: one thread each unless the spec says
+                cfg.torch_threads = 1
             final_return = self.train(cfg, report)
         except optuna.TrialPruned as pruned:
             return TrialResult(optuna.trial.TrialState.PRUNED, reason=str(pruned))
