@@ -16,6 +16,9 @@ shift
 python=${PYTHON:-python}
 jobs=${JOBS:-$(nproc)}
 root=${RESULTS_DIR:-runs/results}
+# The runs side by side share the cores: torch threads per run (one each with the default JOBS).
+threads=$(( $(nproc) / jobs > 0 ? $(nproc) / jobs : 1 ))
+[[ ${RUN_OVERRIDES:-} == *torch_threads=* ]] && threads_override="" || threads_override="torch_threads=$threads"
 
 one() {
   local job=$1 env algo seed dir
@@ -40,7 +43,7 @@ PY
   else
     echo "starting: $dir"
     # shellcheck disable=SC2086  # RUN_OVERRIDES is a list of words
-    "$python" run.py env="$env" algo="$algo" seed="$seed" ${RUN_OVERRIDES:-} total_timesteps="$steps" \
+    "$python" run.py env="$env" algo="$algo" seed="$seed" $threads_override ${RUN_OVERRIDES:-} total_timesteps="$steps" \
       checkpoint.freq=25000 run_dir="$dir" progress_bar=false >>"$dir/stdout.log" 2>&1
   fi
   local rc=$?
@@ -48,5 +51,5 @@ PY
   return $rc
 }
 export -f one
-export steps python root
+export steps python root threads_override
 printf '%s\n' "$@" | xargs -P "$jobs" -I{} bash -c 'one "$1"' _ {}

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
+import yaml
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -38,6 +39,9 @@ def test_runs_start_skip_when_done_and_resume_to_more_steps(tmp_path):
     assert f"starting: {td3x}" in done.stdout and f"starting: {sb3}" in done.stdout
     assert final_step(td3x) == final_step(sb3) == 600
     assert "stable_baselines3.TD3" in (sb3 / "config.yaml").read_text()
+    # JOBS=2 runs side by side share the cores
+    threads = max(1, len(os.sched_getaffinity(0)) // 2)
+    assert yaml.safe_load((td3x / "config.yaml").read_text())["torch_threads"] == threads
 
     again = results_sh(tmp_path, "600", "pendulum:td3:0")
     assert again.returncode == 0 and f"done already: {td3x}" in again.stdout
