@@ -455,14 +455,14 @@ class TD3X(OffPolicyAlgorithm):
         """``gradient_step`` itself, or its compiled or CUDA-graphed form when those are switched on."""
         if self._step_fn is None:
             self.update_path = "autograd"
+            hand_written = getattr(self, "mlp_update", True) and MlpUpdate.why_not(self) is None
             if self.cuda_graph:
                 self.update_path = "cuda_graph"
                 self._step_fn = GraphedGradientStep(self)
             elif self.compile_update:
                 self.update_path = "compiled"
                 # Sampling stays eager: the buffer's size changes at every step.
-                if getattr(self, "mlp_update", True) and MlpUpdate.why_not(self) is None:
-                    # The hand-written gradients, compiled.
+                if hand_written:  # the hand-written gradients, compiled
                     update = MlpUpdate(self, compile=True)
                     self.update_path = "compiled_mlp"
                 elif (reason := FunctionalCompiledUpdate.why_not(self)) is None:
@@ -474,7 +474,7 @@ class TD3X(OffPolicyAlgorithm):
                     )
                     update = compiled_step(self.update_from_batch)
                 self._step_fn = lambda batch_size, update_actor: update(self.sample_batch(batch_size), update_actor)
-            elif getattr(self, "mlp_update", True) and MlpUpdate.why_not(self) is None:
+            elif hand_written:
                 mlp = MlpUpdate(self)
                 self.update_path = "mlp"
                 self._step_fn = lambda batch_size, update_actor: mlp(self.sample_batch(batch_size), update_actor)
