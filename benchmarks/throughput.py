@@ -14,7 +14,8 @@ and timed on its own, summed) and the bare environment step (random actions, no 
 step divided by their sum is the speed-up a TD3 with no overhead at all (no Python, no elementwise work, no
 optimizer, no replay buffer) would reach on this machine. Two more floors replay the operators one update
 dispatched, back to back with the tensors they ran on and with the bare environment step: the products alone, then
-every operator (TD3X without the Python above the dispatcher); their operands come from L3 as in training.
+every operator (TD3X without the Python above the dispatcher); their operands come from L3 as in training. They
+run between the timed chunks, so that they see the same host, and the model's state is put back after each.
 """
 
 from __future__ import annotations
@@ -178,53 +179,65 @@ class _OpRecorder(TorchDispatchMode):
         return func(*args, **kwargs)
 
 
-def kernels_in_sequence_ms(model: TD3, env_id: str, seed: int, rounds: int = 100) -> dict[str, float] | None:
+class InSequenceReplay:
     """The update's operators replayed back to back with the tensors they ran on, without the Python above them.
 
     Records every operator ``policy_delay`` gradient steps dispatch (sampling, products, elementwise work, Adam,
     Polyak) and replays the list, with the bare environment stepped once per gradient step, as training alternates
     them: the operands come from where they come from in training (L3, not L2), unlike the matmul floor's products
-    run alone. ``products`` replays the matrix products only, ``kernels`` every operator: the second is TD3X with no
-    Python cost above the dispatcher. Milliseconds per environment step, bare environment step included. Replaying
-    runs the optimizers' steps again, so it changes the model's weights: call it last. ``None`` for a compiled or
-    CUDA-graphed update, whose kernels do not all pass the dispatcher.
+    run alone. :meth:`time` replays the matrix products only (``"products"``) or every operator (``"kernels"``, TD3X
+    with no Python cost above the dispatcher), in milliseconds per environment step, bare environment step included.
+    Replaying repeats the optimizer steps; the model's weights and optimizer states are put back in place after each
+    replay, so the timed ``learn()`` chunks around it train as before. Not for a compiled or CUDA-graphed update,
+    whose kernels do not all pass the dispatcher (:meth:`applies`).
     """
-    if getattr(model, "compile_update", False) or getattr(model, "cuda_graph", False):
-        return None
-    from sb3_td3x.common import denormals
 
-    delay = model.policy_delay
-    recorder = _OpRecorder()
-    flush = model.device.type == "cpu" and getattr(model, "flush_denormals", False)
-    with denormals.flush_denormals(flush):
-        with recorder:
-            model.train(gradient_steps=delay, batch_size=model.batch_size)
-    products = [call for call in recorder.calls if call[0] in _MatmulRecorder.OPS]
-    env = gym.make(env_id)
-    env.reset(seed=seed)
-    env.action_space.seed(seed)
+    def __init__(self, model: TD3, env_id: str, seed: int) -> None:
+        from sb3_td3x.common import denormals
 
-    def env_step() -> None:
-        _, _, terminated, truncated, _ = env.step(env.action_space.sample())
+        self.model = model
+        self.delay = model.policy_delay
+        self.flush = denormals.flush_denormals
+        self.flush_on = model.device.type == "cpu" and getattr(model, "flush_denormals", False)
+        recorder = _OpRecorder()
+        with self.flush(self.flush_on), recorder:
+            model.train(gradient_steps=self.delay, batch_size=model.batch_size)
+        self.calls = {"kernels": recorder.calls, "products": [c for c in recorder.calls if c[0] in _MatmulRecorder.OPS]}
+        optimizers = [model.actor.optimizer, model.critic.optimizer]
+        self.state = list(model.policy.state_dict().values()) + [
+            value for opt in optimizers for state in opt.state.values() for value in state.values()
+            if isinstance(value, th.Tensor)
+        ]
+        self.env = gym.make(env_id)
+        self.env.reset(seed=seed)
+        self.env.action_space.seed(seed)
+
+    @staticmethod
+    def applies(model: TD3) -> bool:
+        return not getattr(model, "compile_update", False) and not getattr(model, "cuda_graph", False)
+
+    def _env_step(self) -> None:
+        _, _, terminated, truncated, _ = self.env.step(self.env.action_space.sample())
         if terminated or truncated:
-            env.reset()
+            self.env.reset()
 
-    result = {}
-    for name, calls in (("products", products), ("kernels", recorder.calls)):
+    def time(self, which: str, rounds: int) -> float:
+        saved = [t.clone() for t in self.state]
         times = []
-        with denormals.flush_denormals(flush):
-            for _ in range(rounds + 5):
+        with self.flush(self.flush_on):
+            for _ in range(rounds + 3):
                 start = time.perf_counter()
-                for func, args, kwargs in calls:
+                for func, args, kwargs in self.calls[which]:
                     func(*args, **kwargs)
-                for _ in range(delay):
-                    env_step()
-                if model.device.type == "cuda":
+                for _ in range(self.delay):
+                    self._env_step()
+                if self.model.device.type == "cuda":
                     th.cuda.synchronize()
                 times.append(time.perf_counter() - start)
-        result[name] = 1e3 * statistics.median(times[5:]) / delay
-    env.close()
-    return result
+        with th.no_grad():
+            for tensor, value in zip(self.state, saved):
+                tensor.copy_(value)
+        return 1e3 * statistics.median(times[3:]) / self.delay
 
 
 def bare_env_step_ms(env_id: str, steps: int = 3000, seed: int = 0) -> float:
@@ -260,12 +273,17 @@ def bench_env(env_id: str, args: argparse.Namespace, td3x_kwargs: dict) -> dict:
     # Warm-up: fill past learning_starts and let compilation/graph capture happen outside the timed chunks.
     for model in models.values():
         model.learn(args.warmup, reset_num_timesteps=True)
+    replay = InSequenceReplay(td3x, env_id, args.seed) if InSequenceReplay.applies(td3x) else None
     rates: dict[str, list[float]] = {name: [] for name in models}
+    replayed: dict[str, list[float]] = {"kernels": [], "products": []}
     for _ in range(args.chunks):
         for name, model in models.items():  # A B A B ...
             start = time.perf_counter()
             model.learn(args.chunk_steps, reset_num_timesteps=False)
             rates[name].append(args.chunk_steps / (time.perf_counter() - start))
+        if replay is not None:  # the in-sequence floors, between the chunks so that they see the same host
+            for which in replayed:
+                replayed[which].append(replay.time(which, rounds=max(1, args.chunk_steps // (10 * replay.delay))))
     ratios = [b / a for a, b in zip(rates["sb3"], rates["td3x"])]
     result = {"env": env_id, "steps_per_s": {k: statistics.median(v) for k, v in rates.items()}, "chunks": rates,
               "median_ratio": statistics.median(ratios), "ratios": ratios}
@@ -288,11 +306,18 @@ def bench_env(env_id: str, args: argparse.Namespace, td3x_kwargs: dict) -> dict:
     sb3_ms = result["sb3"]["ms_per_step_end_to_end"]
     # The fastest a TD3 of these sizes could go here: TD3X's matrix products alone plus the bare environment.
     result["no_overhead_ceiling_ratio"] = sb3_ms / (result["td3x"]["matmul_floor_ms_per_gradient_step"] + env_ms)
-    # The same, with the products (then every operator) run in sequence as in training; last, as it moves the weights.
-    in_sequence = kernels_in_sequence_ms(td3x, env_id, args.seed)
-    if in_sequence is not None:
+    # The same, with the products (then every operator) run in sequence as in training, timed between the chunks.
+    if replay is not None:
+        in_sequence = {which: statistics.median(times) for which, times in replayed.items()}
         result["td3x"]["in_sequence_ms_per_step"] = in_sequence
+        result["td3x"]["in_sequence_chunks"] = replayed
         result["in_sequence_ceiling_ratio"] = {name: sb3_ms / ms for name, ms in in_sequence.items()}
+        # What Python (TD3X's, SB3's loop, the env wrappers) adds to the kernels, per step: chunk by chunk.
+        td3x_ms = [1e3 / rate for rate in rates["td3x"]]
+        result["td3x"]["python_ms_per_step"] = statistics.median(
+            [ms - kernels for ms, kernels in zip(td3x_ms, replayed["kernels"])]
+        )
+        replay.env.close()
     return result
 
 
@@ -349,7 +374,7 @@ def main() -> None:
             print(
                 f"  replayed in sequence with the bare env step, per step: TD3X's products {seq['products']:.2f} ms "
                 f"({ceiling['products']:.2f}x SB3), all of TD3X's operators without Python {seq['kernels']:.2f} ms "
-                f"({ceiling['kernels']:.2f}x SB3)"
+                f"({ceiling['kernels']:.2f}x SB3); Python adds {r['td3x']['python_ms_per_step']:.2f} ms per step"
             )
     if args.json:
         with open(args.json, "w") as f:
