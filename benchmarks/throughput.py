@@ -167,7 +167,7 @@ def matmul_floor_ms(model: TD3, reps: int = 50) -> float:
 
 
 class _OpRecorder(TorchDispatchMode):
-    """Records every operator dispatched while active, with its live arguments, to be replayed as it ran."""
+    """Records every operator dispatched while active, with its live arguments and its outputs."""
 
     def __init__(self) -> None:
         super().__init__()
@@ -175,8 +175,46 @@ class _OpRecorder(TorchDispatchMode):
 
     def __torch_dispatch__(self, func, types, args=(), kwargs=None):
         kwargs = kwargs or {}
-        self.calls.append((func, args, kwargs))
-        return func(*args, **kwargs)
+        out = func(*args, **kwargs)
+        self.calls.append((func, args, kwargs, out))
+        return out
+
+
+def _tensors_out(out) -> list:
+    """An operator's outputs as a list of tensors (none for the in-place foreach operators)."""
+    if isinstance(out, th.Tensor):
+        return [out]
+    if isinstance(out, (tuple, list)):
+        return [o for o in out if isinstance(o, th.Tensor)]
+    return []
+
+
+def _chain(calls: list[tuple]) -> list[tuple]:
+    """A replay plan: each call with the positions of the arguments that an earlier call of the list produced, so
+    that the replay passes the new outputs on as training does (fresh in cache) instead of the recorded ones."""
+    produced: dict[int, tuple[int, int]] = {}  # id of a recorded output -> (call, output position)
+    plan = []
+    for i, (func, args, kwargs, out) in enumerate(calls):
+        links = []
+        for p, arg in enumerate(args):
+            if isinstance(arg, th.Tensor) and id(arg) in produced:
+                links.append((p, None, *produced[id(arg)]))
+            elif isinstance(arg, (list, tuple)):
+                links += [
+                    (p, q, *produced[id(a)]) for q, a in enumerate(arg) if isinstance(a, th.Tensor) and id(a) in produced
+                ]
+        for k, tensor in enumerate(_tensors_out(out)):
+            produced[id(tensor)] = (i, k)
+        plan.append((func, args, kwargs, links))
+    # Drop each new output after its last use, as training frees its intermediates (the allocator reuses warm memory).
+    last_use = {i: i for i in range(len(plan))}
+    for i, (*_, links) in enumerate(plan):
+        for _, _, j, _ in links:
+            last_use[j] = i
+    frees: list[list[int]] = [[] for _ in plan]
+    for j, i in last_use.items():
+        frees[i].append(j)
+    return [(*call, dead) for call, dead in zip(plan, frees)]
 
 
 class InSequenceReplay:
@@ -185,8 +223,12 @@ class InSequenceReplay:
     Records every operator ``policy_delay`` gradient steps dispatch (sampling, products, elementwise work, Adam,
     Polyak) and replays the list, with the bare environment stepped once per gradient step, as training alternates
     them: the operands come from where they come from in training (L3, not L2), unlike the matmul floor's products
-    run alone. :meth:`time` replays the matrix products only (``"products"``) or every operator (``"kernels"``, TD3X
-    with no Python cost above the dispatcher), in milliseconds per environment step, bare environment step included.
+    run alone. Each output is passed on to the calls that used it, as in training; arguments made outside the list
+    (weights, optimizer states, the buffer, and for the products alone what the elementwise work made) are the
+    recorded tensors; each new output is dropped after its last use. The replay loop's own Python (about a
+    microsecond per call) is included. :meth:`time` replays
+    the matrix products only (``"products"``) or every operator (``"kernels"``, TD3X with no Python cost above the
+    dispatcher), in milliseconds per environment step, bare environment step included.
     Replaying repeats the optimizer steps; the model's weights and optimizer states are put back in place after each
     replay, so the timed ``learn()`` chunks around it train as before. Not for a compiled or CUDA-graphed update,
     whose kernels do not all pass the dispatcher (:meth:`applies`).
@@ -202,7 +244,11 @@ class InSequenceReplay:
         recorder = _OpRecorder()
         with self.flush(self.flush_on), recorder:
             model.train(gradient_steps=self.delay, batch_size=model.batch_size)
-        self.calls = {"kernels": recorder.calls, "products": [c for c in recorder.calls if c[0] in _MatmulRecorder.OPS]}
+        self.recorded = recorder.calls  # kept alive: the plans refer to its outputs by identity
+        self.plans = {
+            "kernels": _chain(recorder.calls),
+            "products": _chain([c for c in recorder.calls if c[0] in _MatmulRecorder.OPS]),
+        }
         optimizers = [model.actor.optimizer, model.critic.optimizer]
         self.state = list(model.policy.state_dict().values()) + [
             value for opt in optimizers for state in opt.state.values() for value in state.values()
@@ -227,8 +273,18 @@ class InSequenceReplay:
         with self.flush(self.flush_on):
             for _ in range(rounds + 3):
                 start = time.perf_counter()
-                for func, args, kwargs in self.calls[which]:
-                    func(*args, **kwargs)
+                outs: list = []
+                for func, args, kwargs, links, dead in self.plans[which]:
+                    if links:
+                        args = [list(a) if isinstance(a, (list, tuple)) else a for a in args]
+                        for p, q, j, k in links:
+                            if q is None:
+                                args[p] = outs[j][k]
+                            else:
+                                args[p][q] = outs[j][k]
+                    outs.append(_tensors_out(func(*args, **kwargs)))
+                    for j in dead:
+                        outs[j] = None
                 for _ in range(self.delay):
                     self._env_step()
                 if self.model.device.type == "cuda":
