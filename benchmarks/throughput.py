@@ -217,6 +217,14 @@ def _chain(calls: list[tuple]) -> list[tuple]:
     return [(*call, dead) for call, dead in zip(plan, frees)]
 
 
+def state_tensors(model: TD3) -> list[th.Tensor]:
+    """The tensors training changes: the policy's weights (targets included) and the optimizers' states."""
+    optimizers = [model.actor.optimizer, model.critic.optimizer]
+    return list(model.policy.state_dict().values()) + [
+        value for opt in optimizers for state in opt.state.values() for value in state.values() if isinstance(value, th.Tensor)
+    ]
+
+
 class InSequenceReplay:
     """The update's operators replayed back to back with the tensors they ran on, without the Python above them.
 
@@ -249,11 +257,7 @@ class InSequenceReplay:
             "kernels": _chain(recorder.calls),
             "products": _chain([c for c in recorder.calls if c[0] in _MatmulRecorder.OPS]),
         }
-        optimizers = [model.actor.optimizer, model.critic.optimizer]
-        self.state = list(model.policy.state_dict().values()) + [
-            value for opt in optimizers for state in opt.state.values() for value in state.values()
-            if isinstance(value, th.Tensor)
-        ]
+        self.state = state_tensors(model)
         self.env = gym.make(env_id)
         self.env.reset(seed=seed)
         self.env.action_space.seed(seed)
@@ -267,24 +271,28 @@ class InSequenceReplay:
         if terminated or truncated:
             self.env.reset()
 
+    def replay(self, which: str) -> None:
+        """One replay of the recorded operators (``"kernels"``) or of their products (``"products"``)."""
+        outs: list = []
+        for func, args, kwargs, links, dead in self.plans[which]:
+            if links:
+                args = [list(a) if isinstance(a, (list, tuple)) else a for a in args]
+                for p, q, j, k in links:
+                    if q is None:
+                        args[p] = outs[j][k]
+                    else:
+                        args[p][q] = outs[j][k]
+            outs.append(_tensors_out(func(*args, **kwargs)))
+            for j in dead:
+                outs[j] = None
+
     def time(self, which: str, rounds: int) -> float:
         saved = [t.clone() for t in self.state]
         times = []
         with self.flush(self.flush_on):
             for _ in range(rounds + 3):
                 start = time.perf_counter()
-                outs: list = []
-                for func, args, kwargs, links, dead in self.plans[which]:
-                    if links:
-                        args = [list(a) if isinstance(a, (list, tuple)) else a for a in args]
-                        for p, q, j, k in links:
-                            if q is None:
-                                args[p] = outs[j][k]
-                            else:
-                                args[p][q] = outs[j][k]
-                    outs.append(_tensors_out(func(*args, **kwargs)))
-                    for j in dead:
-                        outs[j] = None
+                self.replay(which)
                 for _ in range(self.delay):
                     self._env_step()
                 if self.model.device.type == "cuda":

@@ -1,0 +1,87 @@
+"""The in-sequence floors of benchmarks/throughput.py replay what training ran, and leave the model as it was."""
+
+import importlib.util
+from pathlib import Path
+
+import pytest
+import torch as th
+
+from sb3_td3x import TD3X
+
+_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "throughput.py"
+
+
+@pytest.fixture(scope="module")
+def throughput():
+    spec = importlib.util.spec_from_file_location("throughput", _PATH)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _model(throughput, **kwargs) -> TD3X:
+    model = throughput.make_model(
+        TD3X, "Pendulum-v1", 0, {"buffer_size": 2_000, "policy_kwargs": {"net_arch": [32, 32]}, **kwargs}
+    )
+    model.learn(1_100)  # past the benchmark's learning_starts (1000): the optimizers' states exist
+    return model
+
+
+@pytest.mark.parametrize("flush_denormals", [True, False])
+def test_replay_of_all_operators_recomputes_the_recorded_update(throughput, flush_denormals):
+    """Replaying every recorded operator, from the state and random numbers the recording started from, gives the
+    weights and optimizer states training gave: the chained replay runs the same computation, not just the same
+    kernels on stale operands."""
+    model = _model(throughput, flush_denormals=flush_denormals)
+    state = throughput.state_tensors(model)
+    before = [t.clone() for t in state]
+    rng = th.get_rng_state()
+    replay = throughput.InSequenceReplay(model, "Pendulum-v1", 0)  # records policy_delay real gradient steps
+    assert [t.data_ptr() for t in replay.state] == [t.data_ptr() for t in state]
+    trained = [t.clone() for t in state]
+    assert any(not th.equal(a, b) for a, b in zip(before, trained))
+    with th.no_grad():
+        for tensor, value in zip(state, before):
+            tensor.copy_(value)
+        # Poison what the recording computed (not what it read: weights, optimizer states, the buffer), so that a
+        # replay reading a recorded intermediate instead of its own output cannot give the trained state.
+        outputs = {id(t): t for *_, out in replay.recorded for t in throughput._tensors_out(out)}
+        external = {
+            leaf.untyped_storage().data_ptr()
+            for _, args, _, _ in replay.recorded
+            for arg in args
+            for leaf in (arg if isinstance(arg, (list, tuple)) else [arg])
+            if isinstance(leaf, th.Tensor) and id(leaf) not in outputs
+        }
+        poisoned = 0
+        for tensor in outputs.values():
+            if tensor.is_floating_point() and tensor.untyped_storage().data_ptr() not in external:
+                tensor.fill_(float("nan"))
+                poisoned += 1
+        assert poisoned > 20
+    th.set_rng_state(rng)
+    with replay.flush(replay.flush_on):
+        replay.replay("kernels")
+    mismatched = [i for i, (a, b) in enumerate(zip(state, trained)) if not th.equal(a, b)]
+    assert not mismatched, f"{len(mismatched)} of {len(state)} tensors differ from the recorded update"
+    # The outputs are passed on: most operators read an earlier operator's output, not the recorded one.
+    plan = replay.plans["kernels"]
+    assert sum(1 for *_, links, _dead in plan if links) > len(plan) // 2
+
+
+def test_timing_puts_the_model_back_and_training_goes_on(throughput):
+    model = _model(throughput)
+    replay = throughput.InSequenceReplay(model, "Pendulum-v1", 0)
+    state = [t.clone() for t in replay.state]
+    for which in ("kernels", "products"):
+        assert replay.time(which, rounds=3) > 0.0
+    assert all(th.equal(a, b) for a, b in zip(state, replay.state))
+    products = replay.plans["products"]
+    assert products and all(call[0] in throughput._MatmulRecorder.OPS for call in products)
+    model.learn(50, reset_num_timesteps=False)
+    assert all(th.isfinite(p).all() for p in model.policy.parameters())
+
+
+def test_compiled_updates_are_not_replayed(throughput):
+    assert throughput.InSequenceReplay.applies(_model(throughput))
+    assert not throughput.InSequenceReplay.applies(TD3X("MlpPolicy", "Pendulum-v1", compile_update=True))
