@@ -16,6 +16,7 @@ optimizer, no replay buffer) would reach on this machine. Two more floors replay
 dispatched, back to back with the tensors they ran on and with the bare environment step: the products alone, then
 every operator (TD3X without the Python above the dispatcher); their operands come from L3 as in training. They
 run between the timed chunks, so that they see the same host, and the model's state is put back after each.
+``--breakdown`` also times TD3X's operators one by one inside that replay.
 """
 
 from __future__ import annotations
@@ -271,8 +272,9 @@ class InSequenceReplay:
         if terminated or truncated:
             self.env.reset()
 
-    def replay(self, which: str) -> None:
-        """One replay of the recorded operators (``"kernels"``) or of their products (``"products"``)."""
+    def replay(self, which: str, clock: dict | None = None) -> None:
+        """One replay of the recorded operators (``"kernels"``) or of their products (``"products"``); with a
+        ``clock`` dict, each operator's time is added to ``clock[name]``."""
         outs: list = []
         for func, args, kwargs, links, dead in self.plans[which]:
             if links:
@@ -282,9 +284,39 @@ class InSequenceReplay:
                         args[p] = outs[j][k]
                     else:
                         args[p][q] = outs[j][k]
-            outs.append(_tensors_out(func(*args, **kwargs)))
+            if clock is None:
+                outs.append(_tensors_out(func(*args, **kwargs)))
+            else:
+                start = time.perf_counter()
+                outs.append(_tensors_out(func(*args, **kwargs)))
+                clock[func._opname] = clock.get(func._opname, 0.0) + time.perf_counter() - start
             for j in dead:
                 outs[j] = None
+
+    def breakdown(self, rounds: int = 200) -> dict[str, dict[str, float]]:
+        """Milliseconds per environment step and calls per step of each operator, timed one by one inside the
+        in-sequence replay of every operator (the model is put back afterwards)."""
+        saved = [t.clone() for t in self.state]
+        clock: dict[str, float] = {}
+        with self.flush(self.flush_on):
+            for _ in range(3):
+                self.replay("kernels")
+            for _ in range(rounds):
+                self.replay("kernels", clock)
+                for _ in range(self.delay):
+                    self._env_step()
+        with th.no_grad():
+            for tensor, value in zip(self.state, saved):
+                tensor.copy_(value)
+        calls: dict[str, int] = {}
+        for func, *_ in self.plans["kernels"]:
+            calls[func._opname] = calls.get(func._opname, 0) + 1
+        steps = rounds * self.delay
+        products = {op._opname for op in _MatmulRecorder.OPS}
+        return {
+            name: {"ms_per_step": 1e3 * t / steps, "calls_per_step": calls[name] / self.delay, "product": name in products}
+            for name, t in sorted(clock.items(), key=lambda item: -item[1])
+        }
 
     def time(self, which: str, rounds: int) -> float:
         saved = [t.clone() for t in self.state]
@@ -381,6 +413,8 @@ def bench_env(env_id: str, args: argparse.Namespace, td3x_kwargs: dict) -> dict:
         result["td3x"]["python_ms_per_step"] = statistics.median(
             [ms - kernels for ms, kernels in zip(td3x_ms, replayed["kernels"])]
         )
+        if args.breakdown:
+            result["td3x"]["in_sequence_breakdown"] = replay.breakdown()
         replay.env.close()
     return result
 
@@ -397,6 +431,9 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--td3x", nargs="*", default=[], metavar="KEY=VALUE", help="extra TD3X arguments (opt-in flags)")
     parser.add_argument("--json", help="write the results to this file")
+    parser.add_argument(
+        "--breakdown", action="store_true", help="also time TD3X's operators one by one in the in-sequence replay"
+    )
     args = parser.parse_args()
 
     th.set_num_threads(args.threads)
@@ -440,6 +477,15 @@ def main() -> None:
                 f"({ceiling['products']:.2f}x SB3), all of TD3X's operators without Python {seq['kernels']:.2f} ms "
                 f"({ceiling['kernels']:.2f}x SB3); Python adds {r['td3x']['python_ms_per_step']:.2f} ms per step"
             )
+        if "in_sequence_breakdown" in r["td3x"]:
+            rows = r["td3x"]["in_sequence_breakdown"]
+            for kind, is_product in (("matrix products", True), ("other operators", False)):
+                total = sum(row["ms_per_step"] for row in rows.values() if row["product"] == is_product)
+                print(f"  TD3X's {kind} in sequence: {total:.2f} ms per step")
+            print("  the 20 slowest operators (ms per step, calls per step):")
+            for name, row in list(rows.items())[:20]:
+                tag = " (product)" if row["product"] else ""
+                print(f"    {row['ms_per_step']:6.3f} {row['calls_per_step']:5.1f}  {name}{tag}")
     if args.json:
         with open(args.json, "w") as f:
             json.dump({"machine": machine, "td3x_kwargs": td3x_kwargs, "args": vars(args), "results": results}, f, indent=2)

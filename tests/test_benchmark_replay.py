@@ -75,7 +75,11 @@ def test_timing_puts_the_model_back_and_training_goes_on(throughput):
     state = [t.clone() for t in replay.state]
     for which in ("kernels", "products"):
         assert replay.time(which, rounds=3) > 0.0
+    rows = replay.breakdown(rounds=3)
     assert all(th.equal(a, b) for a, b in zip(state, replay.state))
+    assert rows["_fused_adam_"]["calls_per_step"] == 1.5  # the critics' every step, the actor's every other step
+    assert {name for name, row in rows.items() if row["product"]} >= {"baddbmm", "bmm"}
+    assert all(row["ms_per_step"] > 0.0 for row in rows.values())
     products = replay.plans["products"]
     assert products and all(call[0] in throughput._MatmulRecorder.OPS for call in products)
     model.learn(50, reset_num_timesteps=False)
