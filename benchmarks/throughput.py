@@ -27,6 +27,8 @@ import os
 import platform
 import statistics
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 import gymnasium as gym
 import numpy as np
@@ -235,12 +237,12 @@ class InSequenceReplay:
     run alone. Each output is passed on to the calls that used it, as in training; arguments made outside the list
     (weights, optimizer states, the buffer, and for the products alone what the elementwise work made) are the
     recorded tensors; each new output is dropped after its last use. The replay loop's own Python (about a
-    microsecond per call) is included. :meth:`time` replays
-    the matrix products only (``"products"``) or every operator (``"kernels"``, TD3X with no Python cost above the
-    dispatcher), in milliseconds per environment step, bare environment step included.
-    Replaying repeats the optimizer steps; the model's weights and optimizer states are put back in place after each
-    replay, so the timed ``learn()`` chunks around it train as before. Not for a compiled or CUDA-graphed update,
-    whose kernels do not all pass the dispatcher (:meth:`applies`).
+    microsecond per call) is included. :meth:`time` replays the matrix products only (``"products"``) or every
+    operator (``"kernels"``, TD3X with no Python cost above the dispatcher), in milliseconds per environment step,
+    bare environment step included. Replaying repeats the optimizer steps; the model's weights and optimizer states
+    are put back in place after :meth:`time` and :meth:`breakdown`, so the timed ``learn()`` chunks around them
+    train as before. Not for a compiled or CUDA-graphed update, whose kernels do not all pass the dispatcher
+    (:meth:`applies`).
     """
 
     def __init__(self, model: TD3, env_id: str, seed: int) -> None:
@@ -293,21 +295,29 @@ class InSequenceReplay:
             for j in dead:
                 outs[j] = None
 
+    @contextmanager
+    def _put_back(self) -> Iterator[None]:
+        """Denormals flushed as in training, and the model's weights and optimizer states restored on exit."""
+        saved = [t.clone() for t in self.state]
+        try:
+            with self.flush(self.flush_on):
+                yield
+        finally:
+            with th.no_grad():
+                for tensor, value in zip(self.state, saved):
+                    tensor.copy_(value)
+
     def breakdown(self, rounds: int = 200) -> dict[str, dict[str, float]]:
         """Milliseconds per environment step and calls per step of each operator, timed one by one inside the
-        in-sequence replay of every operator (the model is put back afterwards)."""
-        saved = [t.clone() for t in self.state]
+        in-sequence replay of every operator."""
         clock: dict[str, float] = {}
-        with self.flush(self.flush_on):
+        with self._put_back():
             for _ in range(3):
                 self.replay("kernels")
             for _ in range(rounds):
                 self.replay("kernels", clock)
                 for _ in range(self.delay):
                     self._env_step()
-        with th.no_grad():
-            for tensor, value in zip(self.state, saved):
-                tensor.copy_(value)
         calls: dict[str, int] = {}
         for func, *_ in self.plans["kernels"]:
             calls[func._opname] = calls.get(func._opname, 0) + 1
@@ -319,9 +329,8 @@ class InSequenceReplay:
         }
 
     def time(self, which: str, rounds: int) -> float:
-        saved = [t.clone() for t in self.state]
         times = []
-        with self.flush(self.flush_on):
+        with self._put_back():
             for _ in range(rounds + 3):
                 start = time.perf_counter()
                 self.replay(which)
@@ -330,9 +339,6 @@ class InSequenceReplay:
                 if self.model.device.type == "cuda":
                     th.cuda.synchronize()
                 times.append(time.perf_counter() - start)
-        with th.no_grad():
-            for tensor, value in zip(self.state, saved):
-                tensor.copy_(value)
         return 1e3 * statistics.median(times[3:]) / self.delay
 
 
