@@ -22,6 +22,7 @@ run between the timed chunks, so that they see the same host, and the model's st
 from __future__ import annotations
 
 import argparse
+import inspect
 import json
 import os
 import platform
@@ -425,6 +426,31 @@ def bench_env(env_id: str, args: argparse.Namespace, td3x_kwargs: dict) -> dict:
     return result
 
 
+def check_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -> dict:
+    """The TD3X keyword arguments of ``--td3x``; a clear ``parser.error`` (exit 2) for what would fail later."""
+    malformed = [item for item in args.td3x if "=" not in item or not item.split("=", 1)[0]]
+    if malformed:
+        parser.error(f"--td3x takes KEY=VALUE pairs, such as bf16=true; got {' '.join(malformed)}")
+    td3x_kwargs = {k: parse_value(v) for k, v in (item.split("=", 1) for item in args.td3x)}
+    fixed = {"buffer_size": "--buffer-size", "seed": "--seed", "learning_starts": "1000 for both models",
+             "action_noise": "N(0, 0.1) for both models"}
+    known = set(inspect.signature(TD3X.__init__).parameters) - {"self", "policy", "env", "_init_setup_model"}
+    unknown = sorted(set(td3x_kwargs) - known)
+    if unknown:
+        parser.error(f"--td3x: TD3X has no argument {', '.join(unknown)}; it takes {', '.join(sorted(known - set(fixed)))}")
+    for name in sorted(set(td3x_kwargs) & set(fixed)):
+        parser.error(f"--td3x: {name} is the benchmark's, the same for both models ({fixed[name]})")
+    for env_id in args.env:
+        if env_id not in gym.registry:
+            parser.error(f"--env: no gymnasium environment {env_id!r} (for example Ant-v5, HalfCheetah-v5, Hopper-v5)")
+    for name in ("chunks", "chunk_steps", "grad_steps", "buffer_size", "threads"):
+        if getattr(args, name) < 1:
+            parser.error(f"--{name.replace('_', '-')} must be at least 1 (got {getattr(args, name)})")
+    if args.warmup < 1_000 + 1:
+        parser.error(f"--warmup must be past learning_starts=1000 so that both models train (got {args.warmup})")
+    return td3x_kwargs
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--env", nargs="+", default=["Ant-v5", "HalfCheetah-v5"])
@@ -443,7 +469,7 @@ def main() -> None:
     args = parser.parse_args()
 
     th.set_num_threads(args.threads)
-    td3x_kwargs = {k: parse_value(v) for k, v in (item.split("=", 1) for item in args.td3x)}
+    td3x_kwargs = check_arguments(parser, args)
     machine = {
         "processor": platform.processor() or platform.machine(),
         "cpu_model": next((ln.split(":", 1)[1].strip() for ln in open("/proc/cpuinfo") if ln.startswith("model name")), "?")

@@ -1,4 +1,5 @@
-"""The in-sequence floors of benchmarks/throughput.py replay what training ran, and leave the model as it was."""
+"""benchmarks/throughput.py: its in-sequence floors replay what training ran and put the model back; bad arguments
+get a message, not a traceback."""
 
 import importlib.util
 from pathlib import Path
@@ -89,3 +90,22 @@ def test_timing_puts_the_model_back_and_training_goes_on(throughput):
 def test_compiled_updates_are_not_replayed(throughput):
     assert throughput.InSequenceReplay.applies(_model(throughput))
     assert not throughput.InSequenceReplay.applies(TD3X("MlpPolicy", "Pendulum-v1", compile_update=True))
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--td3x", "bf16"], "KEY=VALUE pairs"),
+        (["--td3x", "bf17=true"], "TD3X has no argument bf17"),
+        (["--td3x", "seed=3"], "seed is the benchmark's"),
+        (["--env", "Ant-v0"], "no gymnasium environment 'Ant-v0'"),
+        (["--chunks", "0"], "--chunks must be at least 1"),
+        (["--warmup", "500"], "--warmup must be past learning_starts=1000"),
+    ],
+)
+def test_bad_arguments_get_a_message_not_a_traceback(throughput, monkeypatch, capsys, argv, message):
+    monkeypatch.setattr("sys.argv", ["throughput.py", *argv])
+    with pytest.raises(SystemExit) as exit_info:
+        throughput.main()
+    assert exit_info.value.code == 2
+    assert message in capsys.readouterr().err
