@@ -110,12 +110,14 @@ class _Listed(tuple):
     """A list argument (oneDNN linear's scalars and algorithm), hashable for the record, a list again for the call."""
 
 
-class _MatmulRecorder(TorchDispatchMode):
-    """Records every matrix product (op, argument shapes, strides and dtypes) dispatched while active."""
+# The matrix products (oneDNN's fused linear where torch has it): the matmul floor's and the replay's "products".
+PRODUCT_OPS = {th.ops.aten.mm.default, th.ops.aten.addmm.default, th.ops.aten.bmm.default, th.ops.aten.baddbmm.default}
+if _LINEAR_POINTWISE is not None:
+    PRODUCT_OPS.add(_LINEAR_POINTWISE.default)
 
-    OPS = {th.ops.aten.mm.default, th.ops.aten.addmm.default, th.ops.aten.bmm.default, th.ops.aten.baddbmm.default}
-    if _LINEAR_POINTWISE is not None:
-        OPS.add(_LINEAR_POINTWISE.default)
+
+class _OpRecorder(TorchDispatchMode):
+    """Records every operator dispatched while active, with its live arguments and its outputs."""
 
     def __init__(self) -> None:
         super().__init__()
@@ -123,14 +125,25 @@ class _MatmulRecorder(TorchDispatchMode):
 
     def __torch_dispatch__(self, func, types, args=(), kwargs=None):
         kwargs = kwargs or {}
-        if func in self.OPS:
-            signature = tuple(
-                (tuple(a.shape), a.stride(), a.dtype) if isinstance(a, th.Tensor) else _Listed(a) if isinstance(a, list)
-                else a
-                for a in args
-            )
-            self.calls.append((func, signature, tuple(sorted(kwargs.items()))))
-        return func(*args, **kwargs)
+        out = func(*args, **kwargs)
+        self.calls.append((func, args, kwargs, out))
+        return out
+
+
+def _recorded_step(model: TD3) -> list[tuple]:
+    """The operators of ``policy_delay`` real gradient steps, as :class:`_OpRecorder` records them."""
+    recorder = _OpRecorder()
+    with recorder:
+        model.train(gradient_steps=model.policy_delay, batch_size=model.batch_size)
+    return recorder.calls
+
+
+def _signature(args: tuple) -> tuple:
+    """A product's arguments as (shape, strides, dtype) for tensors, hashable, to time it again on random ones."""
+    return tuple(
+        (tuple(a.shape), a.stride(), a.dtype) if isinstance(a, th.Tensor) else _Listed(a) if isinstance(a, list) else a
+        for a in args
+    )
 
 
 def _random_strided(shape: tuple, stride: tuple, dtype: th.dtype, device: th.device) -> th.Tensor:
@@ -143,13 +156,13 @@ def matmul_floor_ms(model: TD3, reps: int = 50) -> float:
     """Milliseconds per gradient step that the update's matrix products take when each is run alone (median of
     ``reps`` calls per distinct product), averaged over ``policy_delay`` steps like the FLOP count."""
     delay = model.policy_delay
-    recorder = _MatmulRecorder()
-    with recorder:
-        model.train(gradient_steps=delay, batch_size=model.batch_size)
     device = model.device
     total = 0.0
     timed: dict[tuple, float] = {}
-    for func, signature, kwargs in recorder.calls:
+    for func, args, kwargs, _ in _recorded_step(model):
+        if func not in PRODUCT_OPS:
+            continue
+        signature, kwargs = _signature(args), tuple(sorted(kwargs.items()))
         key = (func, signature, kwargs)
         if key not in timed:
             args = [
@@ -168,20 +181,6 @@ def matmul_floor_ms(model: TD3, reps: int = 50) -> float:
             timed[key] = statistics.median(times[5:])
         total += timed[key]
     return 1e3 * total / delay
-
-
-class _OpRecorder(TorchDispatchMode):
-    """Records every operator dispatched while active, with its live arguments and its outputs."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.calls: list[tuple] = []
-
-    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
-        kwargs = kwargs or {}
-        out = func(*args, **kwargs)
-        self.calls.append((func, args, kwargs, out))
-        return out
 
 
 def _tensors_out(out) -> list:
@@ -221,6 +220,23 @@ def _chain(calls: list[tuple]) -> list[tuple]:
     return [(*call, dead) for call, dead in zip(plan, frees)]
 
 
+class RandomActions:
+    """The bare environment stepped with uniformly random actions, reset when an episode ends."""
+
+    def __init__(self, env_id: str, seed: int) -> None:
+        self.env = gym.make(env_id)
+        self.env.reset(seed=seed)
+        self.env.action_space.seed(seed)
+
+    def step(self) -> None:
+        _, _, terminated, truncated, _ = self.env.step(self.env.action_space.sample())
+        if terminated or truncated:
+            self.env.reset()
+
+    def close(self) -> None:
+        self.env.close()
+
+
 def state_tensors(model: TD3) -> list[th.Tensor]:
     """The tensors training changes: the policy's weights (targets included) and the optimizers' states."""
     optimizers = [model.actor.optimizer, model.critic.optimizer]
@@ -253,27 +269,18 @@ class InSequenceReplay:
         self.delay = model.policy_delay
         self.flush = denormals.flush_denormals
         self.flush_on = model.device.type == "cpu" and getattr(model, "flush_denormals", False)
-        recorder = _OpRecorder()
-        with self.flush(self.flush_on), recorder:
-            model.train(gradient_steps=self.delay, batch_size=model.batch_size)
-        self.recorded = recorder.calls  # kept alive: the plans refer to its outputs by identity
+        with self.flush(self.flush_on):
+            self.recorded = _recorded_step(model)  # kept alive: the plans refer to its outputs by identity
         self.plans = {
-            "kernels": _chain(recorder.calls),
-            "products": _chain([c for c in recorder.calls if c[0] in _MatmulRecorder.OPS]),
+            "kernels": _chain(self.recorded),
+            "products": _chain([c for c in self.recorded if c[0] in PRODUCT_OPS]),
         }
         self.state = state_tensors(model)
-        self.env = gym.make(env_id)
-        self.env.reset(seed=seed)
-        self.env.action_space.seed(seed)
+        self.env = RandomActions(env_id, seed)
 
     @staticmethod
     def applies(model: TD3) -> bool:
         return not getattr(model, "compile_update", False) and not getattr(model, "cuda_graph", False)
-
-    def _env_step(self) -> None:
-        _, _, terminated, truncated, _ = self.env.step(self.env.action_space.sample())
-        if terminated or truncated:
-            self.env.reset()
 
     def replay(self, which: str, clock: dict | None = None) -> None:
         """One replay of the recorded operators (``"kernels"``) or of their products (``"products"``); with a
@@ -318,12 +325,12 @@ class InSequenceReplay:
             for _ in range(rounds):
                 self.replay("kernels", clock)
                 for _ in range(self.delay):
-                    self._env_step()
+                    self.env.step()
         calls: dict[str, int] = {}
         for func, *_ in self.plans["kernels"]:
             calls[func._opname] = calls.get(func._opname, 0) + 1
         steps = rounds * self.delay
-        products = {op._opname for op in _MatmulRecorder.OPS}
+        products = {op._opname for op in PRODUCT_OPS}
         return {
             name: {"ms_per_step": 1e3 * t / steps, "calls_per_step": calls[name] / self.delay, "product": name in products}
             for name, t in sorted(clock.items(), key=lambda item: -item[1])
@@ -336,7 +343,7 @@ class InSequenceReplay:
                 start = time.perf_counter()
                 self.replay(which)
                 for _ in range(self.delay):
-                    self._env_step()
+                    self.env.step()
                 if self.model.device.type == "cuda":
                     th.cuda.synchronize()
                 times.append(time.perf_counter() - start)
@@ -345,14 +352,10 @@ class InSequenceReplay:
 
 def bare_env_step_ms(env_id: str, steps: int = 3000, seed: int = 0) -> float:
     """Milliseconds per step of the bare environment with uniformly random actions (resets included)."""
-    env = gym.make(env_id)
-    env.reset(seed=seed)
-    env.action_space.seed(seed)
+    env = RandomActions(env_id, seed)
     start = time.perf_counter()
     for _ in range(steps):
-        _, _, terminated, truncated, _ = env.step(env.action_space.sample())
-        if terminated or truncated:
-            env.reset()
+        env.step()
     elapsed = time.perf_counter() - start
     env.close()
     return 1e3 * elapsed / steps
