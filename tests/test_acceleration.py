@@ -1,5 +1,7 @@
 """The opt-in accelerations: bf16 autocast, torch.compile, and the CUDA-graph path's logic (run on the CPU)."""
 
+import warnings
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -12,7 +14,12 @@ from stable_baselines3.common.type_aliases import ReplayBufferSamples
 
 from sb3_td3x import TD3X
 from sb3_td3x.common.buffers import TensorReplayBuffer
-from sb3_td3x.td3x.acceleration import GraphedGradientStep
+from sb3_td3x.td3x import acceleration
+from sb3_td3x.td3x.acceleration import GraphedGradientStep, cpu_bf16_matmul_is_native
+
+# Without AVX512-BF16 or AMX (an AVX2 CPU) bf16 products run in software emulation, about 50x slower than fp32: the
+# bf16 learning tests train 64-64 networks there (80 s on a 2-core AVX2 AMD EPYC, where 256-256 took 14 minutes).
+SLOW_BF16 = cpu_bf16_matmul_is_native() is False
 
 
 def batches(n: int, seed: int = 0) -> list[ReplayBufferSamples]:
@@ -231,11 +238,37 @@ def test_static_sampling_respects_buffer_bounds():
     del valid_obs
 
 
+@pytest.mark.parametrize("native", [True, False, None])
+def test_bf16_on_a_cpu_without_bf16_instructions_warns(monkeypatch, tmp_path, native):
+    """bf16=True where the CPU has no AVX512-BF16 or AMX (bf16 products emulated, tens of times slower than fp32)
+    warns, at construction and when such a model is loaded; not where they exist or where torch cannot say."""
+    monkeypatch.setattr(acceleration, "cpu_bf16_matmul_is_native", lambda: native)
+    expected = [] if native is not False else ["bf16=True on a CPU without bf16 matrix instructions"]
+
+    def slow_bf16_warnings(record) -> list[str]:
+        return [str(w.message)[:51] for w in record if "bf16 matrix instructions" in str(w.message)]
+
+    with pytest.warns() as record:
+        model = small(bf16=True)
+        small()  # fp32: never
+        warnings.warn("sentinel")  # pytest.warns needs one warning
+    assert slow_bf16_warnings(record) == expected
+    model.save(tmp_path / "model.zip")
+    with pytest.warns() as record:
+        TD3X.load(tmp_path / "model.zip")
+        warnings.warn("sentinel")
+    assert slow_bf16_warnings(record) == expected
+    message = acceleration.bf16_on_cpu_warning(th.device("cpu"))
+    assert (message is None) == (native is not False)
+    assert acceleration.bf16_on_cpu_warning(th.device("meta")) is None  # not a CPU
+
+
 @pytest.mark.slow
 @pytest.mark.timeout(900)
 def test_bf16_learns_pendulum():
+    policy_kwargs = {"net_arch": [64, 64]} if SLOW_BF16 else {}  # SB3's 400-300 where bf16 products are native
     model = TD3X("MlpPolicy", gym.make("Pendulum-v1"), learning_starts=1_000, bf16=True, seed=0,
-                 action_noise=NormalActionNoise(np.zeros(1), 0.1 * np.ones(1)))
+                 policy_kwargs=policy_kwargs, action_noise=NormalActionNoise(np.zeros(1), 0.1 * np.ones(1)))
     model.learn(8_000)
     assert model.update_path == "mlp"  # MlpUpdate's bf16 products
     mean_return, _ = evaluate_policy(model, Monitor(gym.make("Pendulum-v1")), n_eval_episodes=10, deterministic=True)
@@ -247,8 +280,9 @@ def test_bf16_learns_pendulum():
 @pytest.mark.timeout(900)
 @pytest.mark.parametrize("bf16", [False, True])
 def test_compiled_update_learns_pendulum(bf16):
+    net_arch = [64, 64] if bf16 and SLOW_BF16 else [256, 256]
     model = TD3X("MlpPolicy", gym.make("Pendulum-v1"), learning_starts=1_000, compile_update=True, bf16=bf16, seed=1,
-                 policy_kwargs=dict(net_arch=[256, 256]), action_noise=NormalActionNoise(np.zeros(1), 0.1 * np.ones(1)))
+                 policy_kwargs=dict(net_arch=net_arch), action_noise=NormalActionNoise(np.zeros(1), 0.1 * np.ones(1)))
     model.learn(8_000)
     assert model.update_path == "compiled_mlp"
     mean_return, _ = evaluate_policy(model, Monitor(gym.make("Pendulum-v1")), n_eval_episodes=10, deterministic=True)

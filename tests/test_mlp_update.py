@@ -10,6 +10,7 @@ from stable_baselines3.common.type_aliases import ReplayBufferSamples
 
 from sb3_td3x import TD3X
 from sb3_td3x.common.denormals import flush_denormals, flushes_all_threads
+from sb3_td3x.td3x import mlp_update as mlp_update_module
 from sb3_td3x.td3x.mlp_update import MlpUpdate
 
 
@@ -158,6 +159,23 @@ def test_bf16_mlp_update_follows_bf16_autocast():
     assert all(p.dtype == th.float32 for p in fast.policy.parameters())
     for (name, a), b in zip(reference.policy.state_dict().items(), fast.policy.state_dict().values()):
         th.testing.assert_close(b, a, rtol=0.05, atol=2e-3, msg=lambda m, name=name: f"{name}: {m}")
+
+
+@pytest.mark.parametrize("dtype", [th.float32, th.bfloat16])
+def test_fused_linear_relu_runs_in_every_dtype_on_this_cpu(dtype):
+    """The hidden layers' relu(x W^T + b): oneDNN's fused linear where it takes the dtype, addmm and relu otherwise.
+
+    Regression: on an AVX2 CPU (no AVX-512), oneDNN's linear has no bf16 kernel and raised "could not create a
+    primitive descriptor" at the first bf16 step.
+    """
+    g = th.Generator().manual_seed(0)
+    x, w, b = th.randn(64, 40, generator=g), th.randn(30, 40, generator=g), th.randn(30, generator=g)
+    x, w, b = x.to(dtype), w.to(dtype), b.to(dtype)
+    assert (th.float32 in mlp_update_module._LINEAR_POINTWISE_DTYPES) == th.backends.mkldnn.is_available()
+    out = mlp_update_module._linear_relu(x, w, b)
+    assert out.dtype == dtype
+    tolerance = {} if dtype == th.float32 else {"rtol": 2e-2, "atol": 5e-2}
+    th.testing.assert_close(out.float(), th.relu(x.float() @ w.float().t() + b.float()), **tolerance)
 
 
 def test_flush_denormals_reaches_the_worker_threads_and_restores():

@@ -67,17 +67,24 @@ def _matmul(a: th.Tensor, b: th.Tensor) -> th.Tensor:
     return a @ b
 
 
-def _mkldnn_linear_relu() -> Any:
-    try:
-        op = th.ops.mkldnn._linear_pointwise
-        x = th.ones(2, 3)
-        op(x, th.ones(4, 3), th.zeros(4), "relu", [], "")
-        return op
-    except (AttributeError, RuntimeError):
-        return None
+def _mkldnn_linear_relu() -> tuple[Any, frozenset[th.dtype]]:
+    """oneDNN's linear with a fused ReLU, and the dtypes it runs in on this CPU (bf16 only with AVX-512 or AMX:
+    on an AVX2 CPU it fails with "could not create a primitive descriptor")."""
+    op = getattr(getattr(th.ops, "mkldnn", None), "_linear_pointwise", None)
+    dtypes = set()
+    for dtype in (th.float32, th.bfloat16):
+        try:
+            x = th.ones(2, 3, dtype=dtype)
+            op(x, th.ones(4, 3, dtype=dtype), th.zeros(4, dtype=dtype), "relu", [], "")  # type: ignore[misc]
+            dtypes.add(dtype)
+        except (TypeError, RuntimeError):
+            pass
+    return (op if dtypes else None), frozenset(dtypes)
 
 
-_LINEAR_POINTWISE = _mkldnn_linear_relu() if th.backends.mkldnn.is_available() else None
+_LINEAR_POINTWISE, _LINEAR_POINTWISE_DTYPES = (
+    _mkldnn_linear_relu() if th.backends.mkldnn.is_available() else (None, frozenset())
+)
 
 
 def addmm_relu(x: th.Tensor, weight: th.Tensor, bias: th.Tensor) -> th.Tensor:
@@ -90,7 +97,12 @@ def _linear_relu(x: th.Tensor, weight: th.Tensor, bias: th.Tensor) -> th.Tensor:
     calls): one pass over the output instead of two, and faster than MKL's addmm at these sizes (0.24 against 0.29 ms
     for 256 x 400 x 300 in fp32 on the 2-core benchmark machine). Under torch.compile, addmm and relu (Inductor
     lowers them itself)."""
-    if _LINEAR_POINTWISE is not None and x.device.type == "cpu" and not th.compiler.is_compiling():
+    if (
+        _LINEAR_POINTWISE is not None
+        and x.device.type == "cpu"
+        and x.dtype in _LINEAR_POINTWISE_DTYPES
+        and not th.compiler.is_compiling()
+    ):
         return _LINEAR_POINTWISE(x, weight, bias, "relu", [], "")
     return addmm_relu(x, weight, bias)
 

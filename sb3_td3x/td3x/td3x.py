@@ -25,6 +25,7 @@ from sb3_td3x.td3x.acceleration import (
     FunctionalCompiledUpdate,
     GraphedGradientStep,
     autocast_context,
+    bf16_on_cpu_warning,
     compiled_step,
 )
 from sb3_td3x.td3x.mlp_update import MlpUpdate, addmm_relu, mlp_actor_layers, relu_mlp
@@ -339,6 +340,8 @@ class TD3X(OffPolicyAlgorithm):
             # Construction on a CPU already failed (__init__); this is a GPU-trained model loaded without a GPU.
             warnings.warn(f"cuda_graph=True needs a CUDA device, got {self.device}: training steps run eagerly instead.")
             self.cuda_graph = False
+        if self.bf16 and (slow_bf16 := bf16_on_cpu_warning(self.device)) is not None:
+            warnings.warn(slow_bf16)
         optimizer_kwargs = dict(self.policy_kwargs.get("optimizer_kwargs") or {})
         if self.cuda_graph:
             # CUDA graphs need the optimizer's step counter on the device.
