@@ -138,7 +138,8 @@ class TD3X(OffPolicyAlgorithm):
         first critic target only, as DDPG does
     :param bf16: opt-in: the matrix products of the update in bf16 (AMX on recent x86 CPUs, tensor cores on GPUs),
         with fp32 weights, gradients, optimizer states and losses: ``MlpUpdate``'s products where it applies, the
-        forward passes under bf16 autocast otherwise
+        forward passes under bf16 autocast otherwise. A CPU without AVX512-BF16 or AMX (an AVX2 one) runs bf16 products
+        in software, tens of times slower than fp32: TD3X warns there
     :param compile_update: opt-in: ``torch.compile`` the update. With ``mlp_update`` applicable (fp32 or bf16), the
         hand-written gradients of :class:`~sb3_td3x.td3x.mlp_update.MlpUpdate` are compiled (one graph for the
         critics', one for the actor's); otherwise steps 5 to 15 are, with the gradients from ``torch.func`` and
