@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import gymnasium as gym
@@ -66,14 +67,32 @@ def test_sb3_td3_config_runs_the_td3_settings_and_refuses_td3x_only_switches():
     """algo=sb3_td3 is SB3's TD3 with algo/td3.yaml's hyper-parameters, the baseline of the results pages."""
     td3 = algorithm_kwargs(compose_config(["algo=td3"]).algo, n_actions=1)
     sb3 = algorithm_kwargs(compose_config(["algo=sb3_td3"]).algo, n_actions=1)
-    td3_only = {"critic_learning_rate", "target_policy_smoothing", "clipped_double_q"}
+    td3_only = {"critic_learning_rate", "target_policy_smoothing", "clipped_double_q", "bf16", "compile_update",
+                "cuda_graph"}
     assert set(td3) - set(sb3) == td3_only
     for key in sb3:
         if key != "action_noise":
             assert sb3[key] == td3[key], key
-    for override in ("algo.target_policy_smoothing=false", "algo.clipped_double_q=false", "algo.critic_learning_rate=3e-4"):
+    for override in ("algo.target_policy_smoothing=false", "algo.clipped_double_q=false", "algo.critic_learning_rate=3e-4",
+                     "algo.compile_update=true"):
         with pytest.raises(ConfigError, match="SB3's TD3 .* has no such option"):
             algorithm_kwargs(compose_config(["algo=sb3_td3", override]).algo, n_actions=1)
+
+
+def test_the_opt_in_accelerations_are_config_switches():
+    """algo.bf16, algo.compile_update and algo.cuda_graph reach TD3X; cuda_graph without a GPU is a config error."""
+    cfg = compose_config(["algo=td3", "algo.buffer_size=1000", "device=cpu", "algo.compile_update=true", "algo.bf16=true"])
+    check_config(cfg)
+    env = make_train_env(cfg.env, n_envs=1, seed=0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # bf16 on a CPU without bf16 instructions warns (test_acceleration.py)
+        model = build_algorithm(cfg, env)
+    assert (model.bf16, model.compile_update, model.cuda_graph) == (True, True, False)
+    defaults = build_algorithm(compose_config(["algo=td3", "algo.buffer_size=1000", "device=cpu"]), env)
+    assert (defaults.bf16, defaults.compile_update, defaults.cuda_graph) == (False, False, False)
+    with pytest.raises(ConfigError, match="cuda_graph=True needs a CUDA device"):
+        build_algorithm(compose_config(["algo=td3", "algo.buffer_size=1000", "device=cpu", "algo.cuda_graph=true"]), env)
+    env.close()
 
 
 @pytest.mark.parametrize("name", [name for name in options("algo") if name in PRESETS])

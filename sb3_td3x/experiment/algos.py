@@ -22,7 +22,14 @@ from sb3_td3x.experiment.errors import ConfigError
 # AlgoConfig fields that are not constructor arguments, or not under the same name.
 _TRANSLATED = ("_target_", "name", "policy", "exploration_noise", "net_arch", "n_critics", "train_freq", "train_freq_unit")
 # TD3X arguments that SB3's TD3 lacks, with the value at which TD3X behaves as SB3's TD3 does.
-_TD3X_ONLY = {"critic_learning_rate": None, "target_policy_smoothing": True, "clipped_double_q": True}
+_TD3X_ONLY = {
+    "critic_learning_rate": None,
+    "target_policy_smoothing": True,
+    "clipped_double_q": True,
+    "bf16": False,
+    "compile_update": False,
+    "cuda_graph": False,
+}
 
 
 def algorithm_class(algo_cfg: DictConfig) -> type[TD3X | TD3]:

@@ -60,6 +60,11 @@ class AlgoConfig:
     n_critics: int = 2
     optimize_memory_usage: bool = False
     stats_window_size: int = 100  # episodes averaged in rollout/ep_rew_mean
+    # Opt-in accelerations of TD3X (docs/performance.md): bf16 products (pays off with AMX or on a GPU; emulated,
+    # much slower, on an AVX2 CPU), torch.compile of the update, CUDA graph capture (device=cuda)
+    bf16: bool = False
+    compile_update: bool = False
+    cuda_graph: bool = False
 
 
 @dataclass
