@@ -171,7 +171,8 @@ def test_fused_linear_relu_runs_in_every_dtype_on_this_cpu(dtype):
     g = th.Generator().manual_seed(0)
     x, w, b = th.randn(64, 40, generator=g), th.randn(30, 40, generator=g), th.randn(30, generator=g)
     x, w, b = x.to(dtype), w.to(dtype), b.to(dtype)
-    assert (th.float32 in mlp_update_module._LINEAR_POINTWISE_DTYPES) == th.backends.mkldnn.is_available()
+    if mlp_update_module._LINEAR_POINTWISE is not None:  # the op exists: it takes fp32 at least
+        assert th.float32 in mlp_update_module._LINEAR_POINTWISE_DTYPES
     out = mlp_update_module._linear_relu(x, w, b)
     assert out.dtype == dtype
     tolerance = {} if dtype == th.float32 else {"rtol": 2e-2, "atol": 5e-2}
