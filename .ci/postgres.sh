@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Start a throw-away PostgreSQL server for the sweep tests (tests/test_sweeps_postgres.py) and hand over its URL:
+# Start a throw-away PostgreSQL server for the sweep tests (tests/framework/test_sweeps_postgres.py) and hand over its URL:
 #
 #   export SB3_TD3X_TEST_PG_URL="$(bash .ci/postgres.sh)"   # run: prints the URL on stdout
 #   . .ci/postgres.sh                                        # sourced: exports SB3_TD3X_TEST_PG_URL itself

@@ -7,7 +7,7 @@ Both models are built by the experiment runner from ``algo=td3`` and ``algo=sb3_
 start from the same weights, draw the same batches and the same noise. They compute the same updates up to float
 rounding (fused against for-each Adam, summation order), and a training loop amplifies rounding: this prints how
 quickly. It explains why the results pages compare the two over seeds, not seed by seed. Not part of the test suite
-(``tests/test_same_learning.py`` asserts the equality over the first steps).
+(``tests/equivalence/test_same_learning.py`` asserts the equality over the first steps).
 """
 
 from __future__ import annotations

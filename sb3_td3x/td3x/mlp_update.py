@@ -326,7 +326,7 @@ def compute_dtype_batch(batch: Any, dtype: th.dtype) -> tuple[th.Tensor, ...]:
     finite values there leave the result right, NaN ones make it NaN. Compiled, an observation cast inside the graph
     is written straight into the concatenation ``[s, a]`` as such a view and read by the actor's first product while
     the action columns are still uninitialised memory: a NaN target now and then, from the first step on (the
-    regression test is in ``tests/test_mlp_update.py``, the reproduction in docs/performance.md). An input of the
+    regression test is in ``tests/unit/test_mlp_update.py``, the reproduction in docs/performance.md). An input of the
     graph is copied into the concatenation instead.
     """
     return (

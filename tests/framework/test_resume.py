@@ -20,7 +20,7 @@ from sb3_td3x.experiment.cli import config_for_resume
 from sb3_td3x.experiment.errors import ConfigError
 from sb3_td3x.experiment.schemas import compose_config
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 # 2000 steps of InvertedPendulum-v5 with small networks, evaluated every 500 steps; the only checkpoint before
 # the end is the one SIGTERM writes.
 RUN = ["debug=smoke", "env=inverted_pendulum", "checkpoint.freq=100000", "progress_bar=false"]

@@ -21,7 +21,7 @@ from optuna.trial import TrialState
 
 from sb3_td3x.sweeps.storage import open_storage
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 SMOKE = REPO / "sweeps" / "pendulum_smoke.yaml"
 N_TRIALS = 4
 

@@ -26,7 +26,7 @@ from sb3_td3x.sweeps.spec import load_sweep
 from sb3_td3x.sweeps.storage import open_storage
 from sb3_td3x.sweeps.worker import open_study, run_worker
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 SMOKE = REPO / "sweeps" / "pendulum_smoke.yaml"
 STUDY = "td3x-pendulum-smoke"
 FINISHED = (TrialState.COMPLETE, TrialState.PRUNED, TrialState.FAIL)

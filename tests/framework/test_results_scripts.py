@@ -12,7 +12,7 @@ import pandas as pd
 import pytest
 import yaml
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def results_sh(tmp_path: Path, *args: str) -> subprocess.CompletedProcess:

@@ -9,7 +9,7 @@ import torch as th
 
 from sb3_td3x import TD3X
 
-_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "throughput.py"
+_PATH = Path(__file__).resolve().parents[2] / "benchmarks" / "throughput.py"
 
 
 @pytest.fixture(scope="module")

@@ -24,7 +24,7 @@ from sb3_td3x.experiment.errors import TrainingDiverged
 from sb3_td3x.experiment.runner import run_experiment
 from sb3_td3x.experiment.schemas import compose_config
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 FAKE_KEY = "0123456789abcdef-not-a-real-wandb-key"
 # A tiny run: 2000 steps of InvertedPendulum-v5, 64-64 networks, evaluations every 500 steps.
 SMOKE = ["debug=smoke", "env=inverted_pendulum", "progress_bar=false"]

@@ -127,7 +127,7 @@ def test_every_env_config_makes_its_envs_with_the_paper_settings(name):
 def test_every_logger_config_builds_its_logger(name, tmp_path):
     cfg = compose_config([f"logger={name}"])
     check_config(cfg)
-    logger = build_logger(cfg.logger, tmp_path, wandb_run=None)  # the W&B run itself: tests/test_run_e2e.py
+    logger = build_logger(cfg.logger, tmp_path, wandb_run=None)  # the W&B run itself: tests/framework/test_run_e2e.py
     logger.record("eval/mean_reward", 1.0)
     logger.dump(1)
     logger.close()

@@ -15,7 +15,7 @@ import pytest
 from sb3_td3x.experiment.cli import EXIT_CONFIG_ERROR, check_command_line
 from sb3_td3x.experiment.schemas import CONF_DIR
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def run_py(*args: str) -> subprocess.CompletedProcess:

@@ -22,7 +22,7 @@ from sb3_td3x.sweeps.spec import load_sweep, override_value, parse_param
 from sb3_td3x.sweeps.storage import StudyStorage, mask_password, open_storage
 from sb3_td3x.sweeps.worker import budget_used, claim_trial, open_study, run_worker
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 SWEEP_FILES = sorted((REPO / "sweeps").glob("*.yaml"))
 LAUNCHER_FILES = sorted((REPO / "sweeps" / "launcher").glob("*.yaml"))
 
