@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import csv
 import json
+import logging
 import math
 import os
 import signal
@@ -30,6 +31,9 @@ from tqdm import tqdm
 
 from sb3_td3x.experiment.checkpoints import BEST, LAST, checkpoint_dir, save_checkpoint
 from sb3_td3x.experiment.errors import TrainingDiverged, TrainingInterrupted
+from sb3_td3x.experiment.value_bias import VALUE_FIELDS, EpisodeRecorder, measure_value_bias
+
+log = logging.getLogger(__name__)
 
 EVALUATIONS_CSV = "evaluations.csv"
 EVALUATIONS_JSON = "evaluations.json"
@@ -44,6 +48,12 @@ class PeriodicEvaluation(BaseCallback):
     ``run_dir`` after each evaluation, logged as ``eval/*`` to SB3's logger, and handed to ``listeners``
     (progress bar, best checkpoint, the caller's ``report``) in order.
 
+    With ``value_bias`` (``eval.value_bias``, on by default) the same episodes also measure the critic's value
+    estimate against the true discounted return (:mod:`sb3_td3x.experiment.value_bias`): the columns
+    ``value_estimate``, ``true_value``, ``overestimation``, ``normalized_bias`` and ``value_states``, logged as
+    ``eval/<column>``. Off, neither the columns nor the metrics exist. Rows of an earlier run without them (a resumed
+    run) are written with empty cells.
+
     :raises TrainingDiverged: when the mean return is NaN or infinite
     """
 
@@ -56,6 +66,8 @@ class PeriodicEvaluation(BaseCallback):
         eval_seed: int,
         deterministic: bool = True,
         listeners: list[Callable[[dict[str, float]], None]] | None = None,
+        value_bias: bool = True,
+        value_horizon_tolerance: float = 0.01,
     ) -> None:
         super().__init__()
         self.eval_env = eval_env
@@ -65,7 +77,11 @@ class PeriodicEvaluation(BaseCallback):
         self.eval_seed = eval_seed
         self.deterministic = deterministic
         self.listeners = list(listeners or [])
+        self.value_bias = value_bias
+        self.value_horizon_tolerance = value_horizon_tolerance
         self.history: list[dict[str, float]] = []
+        self.timing: dict[str, float] = {}  # seconds of the last evaluation: episodes, value measurement
+        self._warned_value_bias = False
 
     @property
     def last_timesteps(self) -> int:
@@ -96,13 +112,17 @@ class PeriodicEvaluation(BaseCallback):
     def evaluate(self) -> dict[str, float]:
         sync_envs_normalization(self.training_env, self.eval_env)
         self.eval_env.seed(self.eval_seed)
+        recorder = EpisodeRecorder() if self.value_bias else None
+        started = time.perf_counter()
         returns, lengths = evaluate_policy(
             self.model,
             self.eval_env,
             n_eval_episodes=self.n_episodes,
             deterministic=self.deterministic,
             return_episode_rewards=True,
+            callback=recorder,
         )
+        self.timing = {"episodes_s": time.perf_counter() - started}
         result = {
             "timesteps": self.num_timesteps,
             "mean_return": float(np.mean(returns)),
@@ -112,22 +132,37 @@ class PeriodicEvaluation(BaseCallback):
         }
         if not math.isfinite(result["mean_return"]):
             raise TrainingDiverged("the evaluation mean return", result["mean_return"], self.num_timesteps)
+        if recorder is not None:
+            started = time.perf_counter()
+            values, reason = measure_value_bias(self.model, recorder.episodes, self.value_horizon_tolerance)
+            self.timing["value_bias_s"] = time.perf_counter() - started
+            result.update(values)
+            if reason is not None and not self._warned_value_bias:
+                log.warning("Value measurement at step %d gives NaN: %s (said once per run)", self.num_timesteps, reason)
+                self._warned_value_bias = True
         self.history.append(result)
         self._write_history()
         self.logger.record("eval/mean_reward", result["mean_return"])
         self.logger.record("eval/std_reward", result["std_return"])
         self.logger.record("eval/mean_ep_length", result["mean_length"])
         self.logger.record("eval/best_mean_reward", self.best_mean_return)
+        for key in VALUE_FIELDS:
+            if key in result:
+                self.logger.record(f"eval/{key}", result[key])
         self.logger.dump(self.num_timesteps)
         for listener in self.listeners:
             listener(result)
         return result
 
     def _write_history(self) -> None:
-        _write_atomically(self.run_dir / EVALUATIONS_JSON, json.dumps(self.history, indent=1))
+        # NaN (a value measurement without states) as null: strict JSON readers refuse NaN
+        rows = [{key: None if isinstance(v, float) and math.isnan(v) else v for key, v in row.items()} for row in self.history]
+        _write_atomically(self.run_dir / EVALUATIONS_JSON, json.dumps(rows, indent=1))
+        # the value columns when any row has them; rows without them (before a resume) get empty cells
+        fields = EVALUATION_FIELDS + tuple(key for key in VALUE_FIELDS if any(key in row for row in self.history))
         tmp = self.run_dir / (EVALUATIONS_CSV + ".tmp")
         with open(tmp, "w", newline="") as file:
-            writer = csv.DictWriter(file, fieldnames=EVALUATION_FIELDS)
+            writer = csv.DictWriter(file, fieldnames=fields)
             writer.writeheader()
             writer.writerows(self.history)
         os.replace(tmp, self.run_dir / EVALUATIONS_CSV)

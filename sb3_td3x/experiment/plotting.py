@@ -18,21 +18,45 @@ LEARNING_CURVE_PNG = "learning_curve.png"
 
 
 def plot_learning_curve(history: list[dict[str, float]], path: Path, title: str) -> Path:
-    """Mean evaluation return against environment steps, with a band of one standard deviation over episodes."""
+    """Mean evaluation return against environment steps, with a band of one standard deviation over episodes.
+
+    When the evaluations measured the critic's value (``value_estimate``, ``true_value``: ``eval.value_bias``), a
+    second panel shows the critic's estimate and the true discounted return of the visited states over training.
+    """
     steps = np.array([row["timesteps"] for row in history])
     mean = np.array([row["mean_return"] for row in history])
     std = np.array([row["std_return"] for row in history])
-    fig, ax = plt.subplots(figsize=(6, 4), dpi=100)
+    estimate, true = (np.array([_number(row.get(key)) for row in history]) for key in ("value_estimate", "true_value"))
+    with_values = bool(np.isfinite(estimate).any() or np.isfinite(true).any())
+    if with_values:
+        fig, (ax, value_ax) = plt.subplots(2, 1, figsize=(6, 6.5), dpi=100, sharex=True, height_ratios=(1, 1))
+    else:
+        fig, ax = plt.subplots(figsize=(6, 4), dpi=100)
     ax.plot(steps, mean, marker="o", markersize=3)
     ax.fill_between(steps, mean - std, mean + std, alpha=0.2, linewidth=0)
-    ax.set_xlabel("environment steps")
     ax.set_ylabel("evaluation return (deterministic policy)")
     ax.set_title(title)
     ax.grid(alpha=0.3)
+    if with_values:
+        value_ax.plot(steps, estimate, marker="o", markersize=3, color="tab:red", label="critic estimate Q1(s, a)")
+        value_ax.plot(steps, true, marker="o", markersize=3, color="tab:green", linestyle="--", label="true discounted return")
+        value_ax.set_ylabel("value of the visited states (mean)")
+        value_ax.grid(alpha=0.3)
+        value_ax.legend(loc="best", fontsize="small")
+        ax = value_ax
+    ax.set_xlabel("environment steps")
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
     return path
+
+
+def _number(value: object) -> float:
+    """A value of an evaluation row as a float; missing or empty (a row from before the value measurement) is NaN."""
+    try:
+        return float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        return float("nan")
 
 
 def record_video(model, env_cfg: DictConfig, video_cfg: DictConfig, path: Path, seed: int) -> Path:

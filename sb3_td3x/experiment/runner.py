@@ -100,7 +100,14 @@ def run_experiment(cfg: DictConfig, report: Callable[[int, float], None] | None 
         if progress is not None:
             closers.insert(0, progress.close)
         evaluation = PeriodicEvaluation(
-            eval_env, run_dir, cfg.eval.freq, cfg.eval.n_episodes, cfg.seed + cfg.eval.seed_offset, cfg.eval.deterministic
+            eval_env,
+            run_dir,
+            cfg.eval.freq,
+            cfg.eval.n_episodes,
+            cfg.seed + cfg.eval.seed_offset,
+            cfg.eval.deterministic,
+            value_bias=cfg.eval.value_bias,
+            value_horizon_tolerance=cfg.eval.value_horizon_tolerance,
         )
         checkpointer = Checkpointer(
             run_dir,

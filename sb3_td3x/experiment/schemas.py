@@ -90,6 +90,11 @@ class EvalConfig:
     n_episodes: int = 10
     deterministic: bool = True
     seed_offset: int = 1_000_000  # the evaluation env is seeded with seed + seed_offset before every evaluation
+    # The critic's value estimate against the true discounted return on the evaluation episodes
+    # (sb3_td3x/experiment/value_bias.py): eval/value_estimate, true_value, overestimation, normalized_bias
+    value_bias: bool = True
+    # A state of a time-limit-truncated episode counts when its missing return tail weighs gamma^k <= this
+    value_horizon_tolerance: float = 0.01
 
 
 @dataclass
@@ -227,6 +232,10 @@ def check_config(cfg: DictConfig) -> None:
     need(cfg.env.max_episode_steps is None or cfg.env.max_episode_steps >= 1, "env.max_episode_steps must be >= 1 or null")
     need(cfg.eval.freq >= 1, f"eval.freq={cfg.eval.freq} must be >= 1 environment step")
     need(cfg.eval.n_episodes >= 1, f"eval.n_episodes={cfg.eval.n_episodes} must be >= 1")
+    need(
+        0 <= cfg.eval.value_horizon_tolerance <= 1,
+        f"eval.value_horizon_tolerance={cfg.eval.value_horizon_tolerance} must be in [0, 1]",
+    )
     need(cfg.checkpoint.freq >= 1, f"checkpoint.freq={cfg.checkpoint.freq} must be >= 1 environment step")
     if cfg.logger.wandb is not None:
         mode = cfg.logger.wandb.mode
