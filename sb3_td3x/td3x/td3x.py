@@ -21,15 +21,11 @@ from stable_baselines3.common.utils import FloatSchedule, get_parameters_by_name
 
 from sb3_td3x.common import denormals
 from sb3_td3x.common.buffers import TensorReplayBuffer
-from sb3_td3x.td3x.acceleration import (
-    FunctionalCompiledUpdate,
-    GraphedGradientStep,
-    autocast_context,
-    bf16_on_cpu_warning,
-    compiled_step,
-)
-from sb3_td3x.td3x.mlp_update import MlpUpdate, addmm_relu, mlp_actor_layers, relu_mlp
+from sb3_td3x.td3x.hooks import HOOK_NAMES
 from sb3_td3x.td3x.policies import CnnPolicy, MlpPolicy, MultiInputPolicy, TD3XPolicy
+from sb3_td3x.td3x.update_paths.choose import choose_update
+from sb3_td3x.td3x.update_paths.exploration import choose_exploration_actor
+from sb3_td3x.td3x.update_paths.precision import autocast_context, bf16_on_cpu_warning
 
 SelfTD3X = TypeVar("SelfTD3X", bound="TD3X")
 Obs = th.Tensor | TensorDict
@@ -49,17 +45,6 @@ def frozen(parameters: list[th.nn.Parameter]) -> Iterator[None]:
     finally:
         for p in params:
             p.requires_grad_(True)
-
-
-class _DirectMlpActor:
-    """pi(s) of a ReLU MLP actor from its Linear layers: what the module computes, with the same kernels."""
-
-    def __init__(self, layers: list[th.nn.Linear]):
-        self.layers = layers
-
-    def __call__(self, obs: th.Tensor) -> th.Tensor:
-        weights, biases = [layer.weight for layer in self.layers], [layer.bias for layer in self.layers]
-        return relu_mlp(weights, biases, obs.float(), linear_relu=addmm_relu)[0].tanh_()
 
 
 class TD3X(OffPolicyAlgorithm):
@@ -141,21 +126,26 @@ class TD3X(OffPolicyAlgorithm):
         forward passes under bf16 autocast otherwise. A CPU without AVX512-BF16 or AMX (an AVX2 one) runs bf16 products
         in software, tens of times slower than fp32: TD3X warns there
     :param compile_update: opt-in: ``torch.compile`` the update. With ``mlp_update`` applicable (fp32 or bf16), the
-        hand-written gradients of :class:`~sb3_td3x.td3x.mlp_update.MlpUpdate` are compiled (one graph for the
+        hand-written gradients of :class:`~sb3_td3x.td3x.update_paths.mlp.MlpUpdate` are compiled (one graph for the
         critics', one for the actor's); otherwise steps 5 to 15 are, with the gradients from ``torch.func`` and
-        Adam's update rule on the optimizers' own states (:class:`~sb3_td3x.td3x.acceleration.FunctionalCompiledUpdate`).
+        Adam's update rule on the optimizers' own states (:class:`~sb3_td3x.td3x.update_paths.compiled.FunctionalCompiledUpdate`).
         The first steps pay the compilation
     :param cuda_graph: opt-in, CUDA only: capture the whole gradient step, sampling included, in CUDA graphs and
         replay them (no kernel-launch or Python overhead per step)
-    :param mlp_update: for ReLU MLP policies with the hooks of steps 5 to 13 as written, compute the gradients by hand
-        instead of with autograd (:class:`~sb3_td3x.td3x.mlp_update.MlpUpdate`: the same update, faster); when a hook
-        is overridden, or with ``cuda_graph``, the hooks run with autograd as before (``update_path`` says which ran)
+    :param mlp_update: for SB3's ReLU MLP actor and critics with the hooks of steps 5 to 13 as written, compute the
+        gradients by hand instead of with autograd (:class:`~sb3_td3x.td3x.update_paths.mlp.MlpUpdate`: the same
+        update, faster). Anything it cannot prove unchanged (an overridden hook, a network's ``forward``, an
+        activation, a module or gradient hook...) makes the hooks run as written; ``update_path`` and
+        ``update_reason`` say which update runs and why, and the first ``train()`` logs them
+        (:func:`~sb3_td3x.td3x.update_paths.choose.choose_update`). ``False`` always runs the hooks with autograd
     :param flush_denormals: on a CPU, flush denormal floats to zero during ``train()`` on every torch thread
         (:func:`~sb3_td3x.common.denormals.flush_denormals`): Adam's second moment makes them from tiny gradients, and
         each costs a hundred cycles; the process's setting is restored after each call
     :param _init_setup_model: Whether or not to build the network at the creation of the instance
     """
 
+    #: The names of the hooks, steps 4 to 15 (:data:`sb3_td3x.td3x.hooks.HOOKS`).
+    hook_names: ClassVar[tuple[str, ...]] = HOOK_NAMES
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
         "MlpPolicy": MlpPolicy,
         "CnnPolicy": CnnPolicy,
@@ -360,9 +350,11 @@ class TD3X(OffPolicyAlgorithm):
                 )
             self.replay_buffer.enable_static_sampling()
         self._step_fn: Any = None
-        # Which update train() runs, set at its first call: "mlp" (MlpUpdate), "autograd" (the hooks as written),
-        # "compiled_mlp" (MlpUpdate compiled), "compiled" (the hooks compiled) or "cuda_graph".
+        # Which update train() runs and why, set at its first call (update_paths.choose.choose_update): "mlp"
+        # (MlpUpdate), "autograd" (the hooks as written), "compiled_mlp", "compiled", "compiled_eager_backward" or
+        # "cuda_graph".
         self.update_path: str | None = None
+        self.update_reason: str | None = None
         self._create_aliases()
         self._critic_lr_schedule = None if self.critic_learning_rate is None else FloatSchedule(self.critic_learning_rate)
         update_learning_rate(self.critic.optimizer, self.critic_lr_schedule(1))
@@ -456,34 +448,17 @@ class TD3X(OffPolicyAlgorithm):
         return autocast_context(self.device, self.bf16, cache=not self.cuda_graph)
 
     def _gradient_step_fn(self) -> Callable[[int, bool], tuple[dict[str, th.Tensor], dict[str, th.Tensor]]]:
-        """``gradient_step`` itself, or its compiled or CUDA-graphed form when those are switched on."""
+        """The gradient step ``train()`` runs, chosen once (:func:`~sb3_td3x.td3x.update_paths.choose.choose_update`)
+        and logged: the hooks with autograd, or a faster way that computes the same (``update_path``,
+        ``update_reason``)."""
         if self._step_fn is None:
-            self.update_path = "autograd"
-            hand_written = getattr(self, "mlp_update", True) and MlpUpdate.why_not(self) is None
-            if self.cuda_graph:
-                self.update_path = "cuda_graph"
-                self._step_fn = GraphedGradientStep(self)
-            elif self.compile_update:
-                self.update_path = "compiled"
-                # Sampling stays eager: the buffer's size changes at every step.
-                if hand_written:  # the hand-written gradients, compiled
-                    update = MlpUpdate(self, compile=True)
-                    self.update_path = "compiled_mlp"
-                elif (reason := FunctionalCompiledUpdate.why_not(self)) is None:
-                    update = FunctionalCompiledUpdate(self)
-                else:
-                    warnings.warn(
-                        f"compile_update=True: {reason}, so the update is compiled as it is, with eager backward "
-                        "passes (slower than the functional compiled update, and often slower than no compilation)."
-                    )
-                    update = compiled_step(self.update_from_batch)
-                self._step_fn = lambda batch_size, update_actor: update(self.sample_batch(batch_size), update_actor)
-            elif hand_written:
-                mlp = MlpUpdate(self)
-                self.update_path = "mlp"
-                self._step_fn = lambda batch_size, update_actor: mlp(self.sample_batch(batch_size), update_actor)
-            else:
-                self._step_fn = self.gradient_step
+            choice = choose_update(self)
+            self.update_path, self.update_reason, self._step_fn = choice.path, choice.reason, choice.step
+            _, exploration, exploration_reason = self._exploration()
+            self.logger.info(
+                f"update: {self.update_path} ({self.update_reason}); "
+                f"exploration: {exploration} ({exploration_reason})"
+            )
         return self._step_fn
 
     # Step 4 ------------------------------------------------------------------------------------------------------
@@ -616,27 +591,31 @@ class TD3X(OffPolicyAlgorithm):
         """The exploration action a = clip(pi(s) + noise, -1, 1) in the normalised action space, and its env scaling.
 
         The same actions as SB3's ``_sample_action`` (uniform random before ``learning_starts``), computed straight
-        from the actor's normalised output instead of ``predict()`` followed by ``scale_action()``.
+        from the actor's normalised output by ``DirectMlpActor`` instead of ``predict()`` followed by
+        ``scale_action()``, where that computes the same (:meth:`_exploration`); SB3's own method otherwise.
         """
         if self.num_timesteps < learning_starts or not isinstance(self._last_obs, np.ndarray):
+            return super()._sample_action(learning_starts, action_noise, n_envs)
+        actor = self._exploration()[0]
+        if actor is None:  # the actor or the predict path is the user's: SB3's own
             return super()._sample_action(learning_starts, action_noise, n_envs)
         with th.no_grad():
             obs = th.as_tensor(self._last_obs, device=self.device).reshape(n_envs, *self.observation_space.shape)
             # (n_envs, *action_shape), in [-1, 1]
-            scaled_action = self._exploration_actor()(obs).cpu().numpy().reshape((n_envs, *self.action_space.shape))
+            scaled_action = actor(obs).cpu().numpy().reshape((n_envs, *self.action_space.shape))
         if action_noise is not None:
             scaled_action = np.clip(scaled_action + action_noise(), -1, 1)
         return self.policy.unscale_action(scaled_action), scaled_action
 
-    def _exploration_actor(self) -> Callable[[th.Tensor], th.Tensor]:
-        """The actor, or for a ReLU MLP actor on flat observations its layers called directly: the same products,
-        without the module calls (a third of the time of an actor forward on one observation)."""
-        actor = self.__dict__.get("_direct_actor")
-        if actor is None or actor[0] is not self.actor:
-            layers = mlp_actor_layers(self.actor, self.observation_space)
-            actor = (self.actor, self.actor if layers is None else _DirectMlpActor(layers))
-            self._direct_actor = actor
-        return actor[1]
+    def _exploration(self) -> tuple[Callable[[th.Tensor], th.Tensor] | None, str, str]:
+        """The collection shortcut for pi(s), its name and why (chosen again when the actor is replaced): a
+        ``DirectMlpActor`` where it computes what ``actor.forward`` does, else ``None`` (SB3's ``_sample_action``)."""
+        cached = self.__dict__.get("_exploration_choice")
+        if cached is None or cached[0] is not self.actor:
+            cached = (self.actor, *choose_exploration_actor(self))
+            self._exploration_choice = cached
+            self.exploration_path = cached[2]
+        return cached[1], cached[2], cached[3]
 
     def _store_transition(
         self,
@@ -737,8 +716,10 @@ class TD3X(OffPolicyAlgorithm):
             "critic_target",
             "_critic_lr_schedule",
             "_step_fn",
-            "_direct_actor",
+            "_exploration_choice",
             "update_path",
+            "update_reason",
+            "exploration_path",
             "_actor_params",
             "_actor_target_params",
             "_critic_params",

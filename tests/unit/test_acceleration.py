@@ -14,8 +14,9 @@ from stable_baselines3.common.type_aliases import ReplayBufferSamples
 
 from sb3_td3x import TD3X
 from sb3_td3x.common.buffers import TensorReplayBuffer
-from sb3_td3x.td3x import acceleration
-from sb3_td3x.td3x.acceleration import GraphedGradientStep, cpu_bf16_matmul_is_native
+from sb3_td3x.td3x.update_paths import precision
+from sb3_td3x.td3x.update_paths.cuda_graph import GraphedGradientStep
+from sb3_td3x.td3x.update_paths.precision import cpu_bf16_matmul_is_native
 
 # Without AVX512-BF16 or AMX (an AVX2 CPU) bf16 products run in software emulation, about 50x slower than fp32: the
 # bf16 learning tests train 64-64 networks there (80 s on a 2-core AVX2 AMD EPYC, where 256-256 took 14 minutes).
@@ -149,9 +150,10 @@ def test_compile_update_falls_back_with_a_warning_when_the_optimizer_step_is_ove
     model = ClippedTD3X("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(net_arch=[8]), learning_starts=0, seed=0,
                         batch_size=4, compile_update=True)
     model.set_logger(configure(None, []))
-    with pytest.warns(UserWarning, match="optimize_critic is overridden"):
+    with pytest.warns(UserWarning, match="optimize_critic overridden by ClippedTD3X"):
         model.learn(3)
     assert model.clipped
+    assert model.update_path == "compiled_eager_backward"
 
 
 def test_cuda_graph_needs_cuda():
@@ -242,7 +244,7 @@ def test_static_sampling_respects_buffer_bounds():
 def test_bf16_on_a_cpu_without_bf16_instructions_warns(monkeypatch, tmp_path, native):
     """bf16=True where the CPU has no AVX512-BF16 or AMX (bf16 products emulated, tens of times slower than fp32)
     warns, at construction and when such a model is loaded; not where they exist or where torch cannot say."""
-    monkeypatch.setattr(acceleration, "cpu_bf16_matmul_is_native", lambda: native)
+    monkeypatch.setattr(precision, "cpu_bf16_matmul_is_native", lambda: native)
     expected = [] if native is not False else ["bf16=True on a CPU without bf16 matrix instructions"]
 
     def slow_bf16_warnings(record) -> list[str]:
@@ -258,9 +260,9 @@ def test_bf16_on_a_cpu_without_bf16_instructions_warns(monkeypatch, tmp_path, na
         TD3X.load(tmp_path / "model.zip")
         warnings.warn("sentinel")
     assert slow_bf16_warnings(record) == expected
-    message = acceleration.bf16_on_cpu_warning(th.device("cpu"))
+    message = precision.bf16_on_cpu_warning(th.device("cpu"))
     assert (message is None) == (native is not False)
-    assert acceleration.bf16_on_cpu_warning(th.device("meta")) is None  # not a CPU
+    assert precision.bf16_on_cpu_warning(th.device("meta")) is None  # not a CPU
 
 
 @pytest.mark.slow

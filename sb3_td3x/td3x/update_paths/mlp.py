@@ -14,8 +14,10 @@ products, so :class:`MlpUpdate` computes them itself instead of recording an aut
   optimizer, schedule, save and load behave as with autograd.
 
 It computes what :meth:`TD3X.update_from_batch` computes (the tests compare both to float rounding), from the same
-batch and the same random numbers, so it replaces it only where that holds: :meth:`MlpUpdate.why_not` lists the
-conditions (no hook of steps 5 to 13 overridden, ReLU MLPs with a flatten features extractor). With ``bf16=True``
+batch and the same random numbers, so it replaces it only where that holds: :meth:`MlpUpdate.why_not` checks every
+assumption (the hooks of :data:`MlpUpdate.replaces` as written, SB3's own actor and critic classes with their
+``forward`` as written, ReLU MLPs with a flatten features extractor, no module or gradient hooks, trainable fp32
+parameters, no batch norm). With ``bf16=True``
 the products run in bf16 with fp32 weights, gradients and optimizer, as under autocast. Anything else runs the hooks
 with autograd, as before. Steps 14 and 15 are the model's own hooks, overridden or not. :func:`critic_gradients` and
 :func:`actor_gradients` are pure functions of their inputs, which ``compile_update=True`` compiles.
@@ -28,32 +30,15 @@ from typing import TYPE_CHECKING, Any
 
 import torch as th
 import torch.optim.optimizer as _optim_module
-from gymnasium import spaces
-from stable_baselines3.common.preprocessing import is_image_space
-from stable_baselines3.common.torch_layers import FlattenExtractor
 from torch import nn
+
+from sb3_td3x.td3x.update_paths import requirements
+from sb3_td3x.td3x.update_paths.requirements import relu_mlp_layers
 
 if TYPE_CHECKING:
     from sb3_td3x.td3x.td3x import TD3X
 
 Infos = tuple[dict[str, th.Tensor], dict[str, th.Tensor]]
-
-# The hooks whose arithmetic MlpUpdate writes out; overriding any of them switches it off.
-REPLACED_HOOKS = (
-    "gradient_step",
-    "update_from_batch",
-    "compute_target_q",
-    "target_actions",
-    "target_policy_smoothing_noise",
-    "next_q_values",
-    "clipped_double_q_value",
-    "td_target",
-    "current_q_values",
-    "critic_loss",
-    "optimize_critic",
-    "actor_loss",
-    "optimize_actor",
-)
 
 _relu_backward = th.ops.aten.threshold_backward
 _tanh_backward = th.ops.aten.tanh_backward
@@ -105,37 +90,6 @@ def _linear_relu(x: th.Tensor, weight: th.Tensor, bias: th.Tensor) -> th.Tensor:
     ):
         return _LINEAR_POINTWISE(x, weight, bias, "relu", [], "")
     return addmm_relu(x, weight, bias)
-
-
-def _mlp_linears(mlp: nn.Module, final: type[nn.Module] | None) -> list[nn.Linear] | None:
-    """The Linear layers of ``Linear, ReLU, ..., Linear[, final]``, or None for any other network."""
-    modules = list(mlp)
-    if final is not None:
-        if not modules or type(modules[-1]) is not final:
-            return None
-        modules = modules[:-1]
-    if len(modules) % 2 != 1:
-        return None
-    linears = modules[0::2]
-    if not all(type(m) is nn.Linear and m.bias is not None for m in linears):
-        return None
-    if not all(type(m) is nn.ReLU for m in modules[1::2]):
-        return None
-    return linears  # type: ignore[return-value]
-
-
-def _flat_box(space: Any) -> bool:
-    """A 1-D Box: what SB3 preprocesses with ``.float()`` alone (Discrete and MultiDiscrete are one-hot encoded)."""
-    return isinstance(space, spaces.Box) and len(space.shape) == 1 and not is_image_space(space)
-
-
-def mlp_actor_layers(actor: nn.Module, observation_space: Any) -> list[nn.Linear] | None:
-    """The Linear layers of an SB3 ``Actor`` that is a ReLU MLP with a tanh output on flat, non-image observations."""
-    if not _flat_box(observation_space):
-        return None
-    if type(getattr(actor, "features_extractor", None)) is not FlattenExtractor:
-        return None
-    return _mlp_linears(actor.mu, nn.Tanh)
 
 
 def optimizer_step(optimizer: th.optim.Optimizer) -> None:
@@ -412,53 +366,60 @@ def actor_gradients(obs: th.Tensor, actor: Weights, critic: Weights) -> tuple[li
 class MlpUpdate:
     """Steps 5 to 15 of TD3 for MLP policies, gradients by hand (see the module's docstring).
 
+    It replaces the hooks in :attr:`replaces` (their arithmetic is written out here) and calls the model's own
+    ``sample_batch``, ``should_update_actor``, ``update_actor_target`` and ``update_critic_target``.
+
     Called as ``update(batch, update_actor)``, like :meth:`TD3X.update_from_batch`, and returns the same statistics.
     With ``compile=True`` (``compile_update=True``), :func:`critic_gradients` and :func:`actor_gradients` are compiled
     with ``torch.compile`` (one graph each); sampling, the random numbers, the optimizers and the target updates stay
     eager.
     """
 
+    replaces: tuple[str, ...] = (
+        "gradient_step",
+        "update_from_batch",
+        "compute_target_q",
+        "target_actions",
+        "target_policy_smoothing_noise",
+        "next_q_values",
+        "clipped_double_q_value",
+        "td_target",
+        "current_q_values",
+        "critic_loss",
+        "optimize_critic",
+        "actor_loss",
+        "optimize_actor",
+    )
+
     def __init__(self, model: TD3X, compile: bool = False):
         self.model = model
         self._critic_gradients = th.compile(critic_gradients, dynamic=False) if compile else critic_gradients
         self._actor_gradients = th.compile(actor_gradients, dynamic=False) if compile else actor_gradients
-        self.actor = MlpStack([_mlp_linears(model.actor.mu, nn.Tanh)])  # type: ignore[list-item]
-        self.actor_target = MlpStack([_mlp_linears(model.actor_target.mu, nn.Tanh)])  # type: ignore[list-item]
-        self.critic = MlpStack([_mlp_linears(q, None) for q in model.critic.q_networks])  # type: ignore[misc]
-        self.critic_target = MlpStack([_mlp_linears(q, None) for q in model.critic_target.q_networks])  # type: ignore[misc]
+        self.actor = MlpStack([relu_mlp_layers(model.actor.mu, nn.Tanh)])  # type: ignore[list-item]
+        self.actor_target = MlpStack([relu_mlp_layers(model.actor_target.mu, nn.Tanh)])  # type: ignore[list-item]
+        self.critic = MlpStack([relu_mlp_layers(q, None) for q in model.critic.q_networks])  # type: ignore[misc]
+        self.critic_target = MlpStack([relu_mlp_layers(q, None) for q in model.critic_target.q_networks])  # type: ignore[misc]
         self.dtype = th.float32
 
-    @staticmethod
-    def why_not(model: TD3X) -> str | None:
-        """Why ``model``'s update needs autograd (the hooks as written), or ``None`` when this update computes it."""
-        from sb3_td3x.td3x.td3x import TD3X
+    @classmethod
+    def why_not(cls, model: TD3X) -> str | None:
+        """Why ``model``'s update needs the hooks as written (autograd), or ``None`` when this update computes it."""
+        reasons = cls.requirements(model)
+        return "; ".join(reasons) if reasons else None
 
-        for hook in REPLACED_HOOKS:
-            if getattr(type(model), hook) is not getattr(TD3X, hook):
-                return f"{hook} is overridden"
-        policy = model.policy
-        space = model.observation_space
-        if not _flat_box(space):
-            return f"the observations are not a flat Box (got {space})"
-        for name in ("actor", "actor_target", "critic", "critic_target"):
-            module = getattr(model, name)
-            if type(module.features_extractor) is not FlattenExtractor:
-                return f"the {name}'s features extractor is {type(module.features_extractor).__name__}"
-        if _mlp_linears(model.actor.mu, nn.Tanh) is None or _mlp_linears(model.actor_target.mu, nn.Tanh) is None:
-            return "the actor is not a ReLU MLP with a tanh output"
-        for critic in (model.critic, model.critic_target):
-            shapes = None
-            for q in critic.q_networks:
-                linears = _mlp_linears(q, None)
-                if linears is None:
-                    return "a critic is not a ReLU MLP"
-                layer_shapes = [tuple(lin.weight.shape) for lin in linears]
-                if shapes is not None and layer_shapes != shapes:
-                    return "the critics have different architectures"
-                shapes = layer_shapes
-        if any(True for _ in policy.buffers()):
-            return "the policy has buffers (batch norm)"
-        return None
+    @classmethod
+    def requirements(cls, model: TD3X) -> list[str]:
+        """Every assumption of this update that ``model`` breaks (empty: it computes what the hooks compute)."""
+        reasons = requirements.hooks_as_written(model, cls.replaces)
+        reasons += requirements.stock_mlp_actor(model.actor, model.observation_space, "actor")
+        reasons += requirements.stock_mlp_actor(model.actor_target, model.observation_space, "actor_target")
+        reasons += requirements.stock_mlp_critic(model.critic, "critic")
+        reasons += requirements.stock_mlp_critic(model.critic_target, "critic_target")
+        reasons += requirements.module_hooks(model.policy, "policy")
+        for role in ("actor", "critic", "actor_target", "critic_target"):
+            reasons += requirements.plain_parameters(getattr(model, role), role)
+        reasons += requirements.no_buffers(model.policy)
+        return list(dict.fromkeys(reasons))  # in order, without repeats
 
     # ------------------------------------------------------------------------------------------------------------
     def __call__(self, batch: Any, update_actor: bool) -> Infos:

@@ -1,60 +1,30 @@
-"""Opt-in accelerations of TD3X's gradient step: bf16 autocast, ``torch.compile``, CUDA graph capture.
+"""``compile_update=True``: the update compiled with ``torch.compile``.
 
-Each wraps :meth:`TD3X.gradient_step` (or :meth:`TD3X.update_from_batch`) as it is, so overridden hooks are
-accelerated too.
+Two ways, chosen by :func:`~sb3_td3x.td3x.update_paths.choose_update`:
+
+- :class:`FunctionalCompiledUpdate`: steps 5 to 15 as one graph, the model's own loss hooks evaluated with
+  ``torch.func`` (so overridden losses, targets and networks are compiled as written), Adam's rule on the
+  optimizers' own states. It replaces ``gradient_step``, ``update_from_batch``, ``optimize_critic`` and
+  ``optimize_actor``, so it requires them as written.
+- :func:`compiled_step`: ``update_from_batch`` compiled as it is (eager backward passes), when the functional form
+  does not apply (an overridden optimizer step, another optimizer...).
+
+(``MlpUpdate`` compiled, the third form, is in :mod:`~sb3_td3x.td3x.update_paths.mlp`.)
 """
 
 from __future__ import annotations
 
-import contextlib
-import platform
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 import torch as th
 
+from sb3_td3x.td3x.update_paths import requirements
+
 if TYPE_CHECKING:
     from sb3_td3x.td3x.td3x import TD3X
 
 Infos = tuple[dict[str, th.Tensor], dict[str, th.Tensor]]
-StepFn = Callable[[int, bool], Infos]
-
-
-def autocast_context(device: th.device, enabled: bool, cache: bool = True) -> contextlib.AbstractContextManager:
-    """bf16 autocast for the forward passes (AMX on recent x86 CPUs, tensor cores on GPUs); weights stay fp32.
-
-    ``cache=False`` under CUDA graph capture: cached casts must not outlive the captured region.
-    """
-    if not enabled:
-        return contextlib.nullcontext()
-    return th.autocast(device_type=device.type, dtype=th.bfloat16, cache_enabled=cache)
-
-
-def cpu_bf16_matmul_is_native() -> bool | None:
-    """Whether this CPU multiplies bf16 matrices in hardware (AVX512-BF16 or AMX), or ``None`` when torch cannot say.
-
-    Without them (an AVX2-only x86 CPU), oneDNN converts bf16 in software: a 256 x 400 x 300 product took 19.8 ms in
-    bf16 against 0.42 ms in fp32 on a 2-core AMD EPYC (AVX2), where AMX makes it 2 to 5 times *faster* than fp32.
-    """
-    if platform.machine().lower() not in ("x86_64", "amd64", "i386", "i686", "x86"):
-        return None
-    probes = [getattr(th.cpu, name, None) for name in ("_is_avx512_bf16_supported", "_is_amx_tile_supported")]
-    if any(probe is None for probe in probes):
-        return None
-    return any(probe() for probe in probes)  # type: ignore[misc]
-
-
-def bf16_on_cpu_warning(device: th.device) -> str | None:
-    """The warning for ``bf16=True`` on ``device``: set when it is a CPU without bf16 matrix instructions."""
-    if device.type != "cpu" or cpu_bf16_matmul_is_native() is not False:
-        return None
-    capability = th.backends.cpu.get_cpu_capability()
-    return (
-        f"bf16=True on a CPU without bf16 matrix instructions (no AVX512-BF16 or AMX; torch reports {capability}): "
-        "its bf16 matrix products run in software emulation, tens of times slower than fp32 (47x for 256 x 400 x "
-        "300 on an AVX2 AMD EPYC). Use bf16=False on this machine; bf16 pays off on CPUs with AMX (Intel Xeon "
-        "Sapphire Rapids and later) and on GPUs."
-    )
 
 
 def compiled_step(update: Callable[[Any, bool], Infos]) -> Callable[[Any, bool], Infos]:
@@ -93,8 +63,7 @@ class FunctionalCompiledUpdate:
       ``compile_update`` off keep working;
     - the learning rates are 0-d tensors refreshed before each call: a schedule does not recompile.
 
-    Use :meth:`why_not` to know whether a model qualifies (Adam or AdamW with one parameter group, no AMSGrad, no
-    batch norm, ``optimize_critic``, ``optimize_actor`` and ``update_from_batch`` not overridden).
+    :meth:`requirements` lists what a model must keep for this to compute what its hooks compute.
     """
 
     def __init__(self, model: TD3X):
@@ -112,25 +81,35 @@ class FunctionalCompiledUpdate:
         self._critic_update = th.compile(lambda batch: self._update(batch, False), dynamic=False)
         self._full_update = th.compile(lambda batch: self._update(batch, True), dynamic=False)
 
-    @staticmethod
-    def why_not(model: TD3X) -> str | None:
-        """Why ``model``'s update cannot be made functional, or ``None`` when it can."""
-        from sb3_td3x.td3x.td3x import TD3X
+    replaces: tuple[str, ...] = ("gradient_step", "update_from_batch", "optimize_critic", "optimize_actor")
 
-        for hook in ("update_from_batch", "optimize_critic", "optimize_actor"):
-            if getattr(type(model), hook) is not getattr(TD3X, hook):
-                return f"{hook} is overridden"
+    @classmethod
+    def why_not(cls, model: TD3X) -> str | None:
+        """Why ``model``'s update cannot be made functional, or ``None`` when it can."""
+        reasons = cls.requirements(model)
+        return "; ".join(reasons) if reasons else None
+
+    @classmethod
+    def requirements(cls, model: TD3X) -> list[str]:
+        """Every assumption of the functional update that ``model`` breaks: the hooks it replaces as written, Adam or
+        AdamW with one parameter group and no step hooks, every parameter trainable and without gradient hooks
+        (``torch.func`` neither skips frozen parameters nor runs tensor hooks), no backward hooks on modules, no
+        batch norm."""
+        reasons = requirements.hooks_as_written(model, cls.replaces)
         for optimizer in (model.critic.optimizer, model.actor.optimizer):
             if type(optimizer) not in (th.optim.Adam, th.optim.AdamW):
-                return f"the optimizer is {type(optimizer).__name__}, not Adam or AdamW"
-            if len(optimizer.param_groups) != 1:
-                return "an optimizer has several parameter groups"
-            group = optimizer.param_groups[0]
-            if group.get("amsgrad") or group.get("maximize") or group.get("differentiable"):
-                return "the optimizer uses amsgrad, maximize or differentiable"
-        if any(True for _ in model.policy.buffers()):
-            return "the policy has buffers (batch norm)"
-        return None
+                reasons.append(f"the optimizer is {type(optimizer).__name__}, not Adam or AdamW")
+            elif len(optimizer.param_groups) != 1:
+                reasons.append("an optimizer has several parameter groups")
+            elif any(optimizer.param_groups[0].get(k) for k in ("amsgrad", "maximize", "differentiable")):
+                reasons.append("the optimizer uses amsgrad, maximize or differentiable")
+            if optimizer._optimizer_step_pre_hooks or optimizer._optimizer_step_post_hooks:
+                reasons.append("an optimizer has step hooks")
+        for role in ("actor", "critic"):
+            reasons += [r for r in requirements.plain_parameters(getattr(model, role), role, th.float32)]
+        reasons += [r for r in requirements.module_hooks(model.policy, "policy") if "backward" in r]
+        reasons += requirements.no_buffers(model.policy)
+        return list(dict.fromkeys(reasons))
 
     def __call__(self, batch: Any, update_actor: bool) -> Infos:
         # Everything the graph reads from the optimizers is gathered here, outside it: Dynamo then guards on these
@@ -224,91 +203,3 @@ class FunctionalCompiledUpdate:
         model.update_critic_target()  # step 15
         model.update_actor_target()  # step 14
         return critic_info, actor_info
-
-
-def cuda_graph_capture(fn: Callable[[], Infos], pool: Any | None) -> tuple[Callable[[], None], Infos, Any]:
-    """Capture ``fn`` in a CUDA graph; returns (replay, the static outputs, the memory pool)."""
-    graph = th.cuda.CUDAGraph()
-    with th.cuda.graph(graph, pool=pool):
-        outputs = fn()
-    return graph.replay, outputs, graph.pool()
-
-
-class GraphedGradientStep:
-    """
-    The whole gradient step (sampling included) captured once per (batch size, actor update or not) and replayed.
-
-    Requirements, checked by ``TD3X``: a CUDA device, the tensor replay buffer (sampled on the device from bounds
-    kept in device tensors), no ``VecNormalize`` (it normalises on the host), and Adam with ``capturable=True``.
-    The warm-up steps that precede a capture are undone (parameters and optimizer states restored in place), so
-    capturing does not change what is learned.
-
-    :param model: the TD3X model
-    :param capture: how to capture a step; ``cuda_graph_capture`` on a GPU. Tests on the CPU pass an eager stand-in,
-        which checks everything but the capture itself: static bounds, cloned outputs, restored warm-up.
-    :param warmup_steps: eager steps run before a capture (CUDA needs them on a side stream to set up its kernels)
-    """
-
-    def __init__(
-        self,
-        model: TD3X,
-        capture: Callable[[Callable[[], Infos], Any | None], tuple[Callable[[], None], Infos, Any]] = cuda_graph_capture,
-        warmup_steps: int = 3,
-    ):
-        self.model = model
-        self.capture = capture
-        self.warmup_steps = warmup_steps
-        self._graphs: dict[tuple[int, bool], tuple[Callable[[], None], Infos]] = {}
-        self._pool: Any | None = None
-
-    def __call__(self, batch_size: int, update_actor: bool) -> Infos:
-        key = (batch_size, update_actor)
-        if key not in self._graphs:
-            self._graphs[key] = self._capture(batch_size, update_actor)
-        replay, (critic_info, actor_info) = self._graphs[key]
-        self.model.replay_buffer.refresh_static_bounds()  # type: ignore[union-attr]
-        replay()
-        # The outputs are static tensors overwritten by the next replay: keep copies (device ops, no sync).
-        return {k: v.clone() for k, v in critic_info.items()}, {k: v.clone() for k, v in actor_info.items()}
-
-    def _capture(self, batch_size: int, update_actor: bool) -> tuple[Callable[[], None], Infos]:
-        model = self.model
-        model.replay_buffer.refresh_static_bounds()  # type: ignore[union-attr]
-        saved = self._snapshot()
-        on_cuda = model.device.type == "cuda"
-        stream = th.cuda.Stream() if on_cuda else None
-        context = th.cuda.stream(stream) if stream is not None else contextlib.nullcontext()
-        if stream is not None:
-            stream.wait_stream(th.cuda.current_stream())
-        with context:
-            for _ in range(self.warmup_steps):
-                model.gradient_step(batch_size, update_actor)
-        if stream is not None:
-            th.cuda.current_stream().wait_stream(stream)
-        replay, outputs, self._pool = self.capture(lambda: model.gradient_step(batch_size, update_actor), self._pool)
-        self._restore(saved)
-        return replay, outputs
-
-    def _tensors(self) -> list[th.Tensor]:
-        """Every tensor a gradient step writes: parameters (online and target), buffers, optimizer states."""
-        model = self.model
-        tensors = [*model.policy.parameters(), *model.policy.buffers()]
-        for optimizer in (model.actor.optimizer, model.critic.optimizer):
-            for state in optimizer.state.values():
-                tensors.extend(v for v in state.values() if isinstance(v, th.Tensor))
-        return tensors
-
-    @th.no_grad()
-    def _snapshot(self) -> list[tuple[th.Tensor, th.Tensor]]:
-        # Optimizer states may not exist yet (no step taken): the warm-up creates them, and _restore zeroes them.
-        return [(t, t.clone()) for t in self._tensors()]
-
-    @th.no_grad()
-    def _restore(self, saved: list[tuple[th.Tensor, th.Tensor]]) -> None:
-        saved_ids = {id(t) for t, _ in saved}
-        for tensor, value in saved:
-            tensor.copy_(value)
-        # States created during the warm-up start from zero, as a fresh optimizer's would.
-        for t in self._tensors():
-            if id(t) not in saved_ids:
-                t.zero_()
