@@ -7,7 +7,12 @@ runs' records under ``<results docs dir>/runs/<env>/<algo>/seed<S>/``, which say
 in the tables is typed by hand, so publishing again after more runs brings the page up to date.
 
 The groups (which run folders are aggregated together, and under which name) are defined here only, in ``GROUPS``;
-``scripts/publish_results.sh`` reads them with ``--groups``.
+``scripts/publish_results.sh`` reads them with ``--groups``. The overestimation table (``VALUE_BIAS``, the paper's
+Figure 1) comes from ``value_bias/value_bias.csv``: the critic's value estimate against the true value at the last
+evaluation, over the seeds whose evaluations measured it (runs made before ``eval.value_bias`` existed are said so).
+
+Each row lists seeds 0, 1, 2 (0 to 4 in the overestimation table) and any further seed that has a run folder, unless
+``--seeds`` names them.
 
     python scripts/results_tables.py [--docs-dir docs/assets/results] [--page docs/results.md] [--seeds 0 1 2]
     python scripts/results_tables.py --groups    # one line per group: its name, then its <env>/<algo> folders
@@ -35,27 +40,55 @@ GROUPS = {  # aggregate folder -> the run folders <env>/<algo> aggregated into i
     "hopper_td3x_vs_sb3": ["hopper/td3", "hopper/sb3_td3"],
     "hopper_ablation": [f"hopper/{algo}" for algo in ABLATION],
     "td3x_mujoco": [f"{env}/td3" for env in MUJOCO],
+    "value_bias": ["hopper/td3", "hopper/ddpg", "hopper/td3_no_cdq", "walker2d/td3", "walker2d/ddpg"],
 }
+VALUE_BIAS_ROWS = [  # (row name, env id, run folder <env>/<algo>): the paper's Figure 1, and TD3 without clipped double-Q
+    ("Hopper-v5, TD3 (`td3`)", "Hopper-v5", "hopper/td3"),
+    ("Hopper-v5, DDPG (`ddpg`)", "Hopper-v5", "hopper/ddpg"),
+    ("Hopper-v5, TD3 without clipped double-Q (`td3_no_cdq`)", "Hopper-v5", "hopper/td3_no_cdq"),
+    ("Walker2d-v5, TD3 (`td3`)", "Walker2d-v5", "walker2d/td3"),
+    ("Walker2d-v5, DDPG (`ddpg`)", "Walker2d-v5", "walker2d/ddpg"),
+]
+VALUE_BIAS_SEEDS = 5  # the paper's Figure 1 averages 5 runs
+VALUE_HEADER = [
+    "| run | seeds: steps reached | steps | value estimate | true value | overestimation, mean (95% CI) "
+    "| normalised bias, mean (95% CI) | overestimation per seed |",
+    "|---|---|---|---|---|---|---|---|",
+]
 HEADER = [
     "| {first} | seeds: steps reached | steps | final return, mean (95% CI) | final return per seed | best mean |",
     "|---|---|---|---|---|---|",
 ]
 
 
-def seed_progress(run_dir: Path) -> str:
-    """'200k', '85k of 200k', 'not started' or 'started, no evaluation yet' for one seed's run folder."""
+def seed_progress(run_dir: Path, needs_values: bool = False) -> str:
+    """'200k', '85k of 200k', 'not started' or 'started, no evaluation yet' for one seed's run folder.
+
+    :param needs_values: say 'made without the value columns' for a run whose evaluations lack ``value_estimate``
+    """
     if not run_dir.is_dir():
         return "not started"
     target = None
     if (run_dir / "config.yaml").is_file():
         target = (yaml.safe_load((run_dir / "config.yaml").read_text()) or {}).get("total_timesteps")
-    evaluations = run_dir / "evaluations.csv"
-    reached = int(pd.read_csv(evaluations)["timesteps"].iloc[-1]) if evaluations.is_file() else 0
+    evaluations = pd.read_csv(run_dir / "evaluations.csv") if (run_dir / "evaluations.csv").is_file() else None
+    reached = int(evaluations["timesteps"].iloc[-1]) if evaluations is not None and len(evaluations) else 0
     if reached == 0:
         return "started, no evaluation yet"
+    if needs_values and "value_estimate" not in evaluations:
+        return f"{steps(reached)}, made without the value columns"
     if target is None or reached >= int(target):
         return steps(reached)
     return f"{steps(reached)} of {steps(int(target))}"
+
+
+def row_seeds(runs: Path, seeds: list[int] | None, planned: int = 3) -> list[int]:
+    """The seeds a row lists: ``seeds`` when given, else the ``planned`` first ones and every seed<N> folder of the
+    row's runs."""
+    if seeds is not None:
+        return seeds
+    found = {int(path.name[4:]) for path in runs.glob("seed*") if path.is_dir() and path.name[4:].isdigit()}
+    return sorted(set(range(planned)) | found)
 
 
 def steps(n: int) -> str:
@@ -63,9 +96,9 @@ def steps(n: int) -> str:
 
 
 def row(
-    name: str, aggregate: pd.DataFrame, per_seed: pd.DataFrame, env_id: str, algo: str, runs: Path, seeds: list[int]
+    name: str, aggregate: pd.DataFrame, per_seed: pd.DataFrame, env_id: str, algo: str, runs: Path, seeds: list[int] | None
 ) -> str:
-    progress = ", ".join(f"{seed}: {seed_progress(runs / f'seed{seed}')}" for seed in seeds)
+    progress = ", ".join(f"{seed}: {seed_progress(runs / f'seed{seed}')}" for seed in row_seeds(runs, seeds))
     found = aggregate[(aggregate["env_id"] == env_id) & (aggregate["algo"] == algo)] if len(aggregate) else aggregate
     if found.empty:
         return f"| {name} | {progress} | | | | |"
@@ -80,7 +113,37 @@ def read_csv(path: Path) -> pd.DataFrame:
     return pd.read_csv(path) if path.is_file() else pd.DataFrame(columns=["env_id", "algo", "seed", "run_dir"])
 
 
-def table(docs_dir: Path, group: str, first: str, rows_of: list[tuple[str, str, str]], seeds: list[int]) -> str:
+def value_row(name: str, values: pd.DataFrame, env_id: str, algo: str, runs: Path, seeds: list[int] | None) -> str:
+    """One row of the overestimation table, from ``value_bias.csv`` (the last step all the measured seeds reached)."""
+    seed_list = row_seeds(runs, seeds, planned=VALUE_BIAS_SEEDS)
+    progress = ", ".join(f"{seed}: {seed_progress(runs / f'seed{seed}', needs_values=True)}" for seed in seed_list)
+    found = values[(values["env_id"] == env_id) & (values["algo"] == algo)] if len(values) else values
+    if found.empty:
+        return f"| {name} | {progress} | | | | | | |"
+    r = found.iloc[0]
+
+    def with_ci(metric: str, digits: int) -> str:
+        value, low, high = r[metric], r[f"{metric}_ci_low"], r[f"{metric}_ci_high"]
+        if r.n_runs <= 1:
+            return f"{value:.{digits}f} (one seed)"
+        return f"{value:.{digits}f} ({low:.{digits}f} to {high:.{digits}f})"
+
+    per_seed = ", ".join(f"{seed}: {value}" for seed, value in zip(str(r.seeds).split(", "), str(r.per_seed_overestimation).split(", ")))
+    return (
+        f"| {name} | {progress} | {int(r.timesteps):,} | {r.value_estimate:.1f} | {r.true_value:.1f} "
+        f"| {with_ci('overestimation', 1)} | {with_ci('normalized_bias', 3)} | {per_seed} |"
+    )
+
+
+def value_table(docs_dir: Path, seeds: list[int] | None) -> str:
+    values = read_csv(docs_dir / "value_bias" / "value_bias.csv")
+    rows = list(VALUE_HEADER)
+    for name, env_id, folder in VALUE_BIAS_ROWS:
+        rows.append(value_row(name, values, env_id, folder.split("/")[1], docs_dir / "runs" / folder, seeds))
+    return "\n".join(rows)
+
+
+def table(docs_dir: Path, group: str, first: str, rows_of: list[tuple[str, str, str]], seeds: list[int] | None) -> str:
     """One table: a row per (row name, env id, run folder <env>/<algo>), from the group's aggregate."""
     aggregate = read_csv(docs_dir / group / "aggregate.csv")
     per_seed = read_csv(docs_dir / group / "per_seed.csv")
@@ -91,12 +154,13 @@ def table(docs_dir: Path, group: str, first: str, rows_of: list[tuple[str, str, 
     return "\n".join(rows)
 
 
-def tables(docs_dir: Path, seeds: list[int]) -> dict[str, str]:
+def tables(docs_dir: Path, seeds: list[int] | None) -> dict[str, str]:
     ablation = [(name, "Hopper-v5", f"hopper/{algo}") for algo, name in ABLATION.items()]
     mujoco = [(env_id, env_id, f"{env}/td3") for env, env_id in MUJOCO.items()]
     return {
         "ABLATION": table(docs_dir, "hopper_ablation", "variant", ablation, seeds),
         "MUJOCO": table(docs_dir, "td3x_mujoco", "env (TD3X, `algo=td3`)", mujoco, seeds),
+        "VALUE_BIAS": value_table(docs_dir, seeds),
     }
 
 
@@ -114,7 +178,9 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--docs-dir", type=Path, default=root / "docs" / "assets" / "results")
     parser.add_argument("--page", type=Path, default=root / "docs" / "results.md")
-    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    parser.add_argument(
+        "--seeds", type=int, nargs="+", default=None, help="the seeds every row lists (default: 0, 1, 2 and any other found)"
+    )
     parser.add_argument("--groups", action="store_true", help="print the groups to aggregate and exit")
     args = parser.parse_args(argv)
     if args.groups:

@@ -8,6 +8,13 @@ seeds is the mean or the interquartile mean (IQM, the mean of the middle 50%, as
 2021, "Deep RL at the Edge of the Statistical Precipice"); its 95% confidence interval is a percentile
 bootstrap over seeds. Writes ``aggregate.csv``, ``aggregate.md`` (with each seed's final return), ``per_seed.csv``
 (one row per run: env id, algo, seed, run folder, steps, final return) and ``aggregate_<env>.png`` to ``--out``.
+
+Runs whose evaluations measured the critic's value (the ``evaluations.csv`` columns ``value_estimate``,
+``true_value``, ``overestimation``, ``normalized_bias``: ``eval.value_bias``) are also aggregated into
+``value_bias.csv`` (the same statistic and bootstrap interval over seeds, at the last step that all the group's
+runs with these columns reached) and ``value_bias_<env>.png``: one panel per algo with the critic's estimate and
+the true value over training, as in Figure 1 of the TD3 paper. Runs without the columns (made before they existed)
+are left out of these two only.
 """
 
 from __future__ import annotations
@@ -28,6 +35,11 @@ from omegaconf import OmegaConf
 
 from sb3_td3x.experiment.callbacks import EVALUATIONS_CSV
 from sb3_td3x.experiment.runner import CONFIG_FILE
+from sb3_td3x.experiment.value_bias import VALUE_FIELDS
+
+# The value columns aggregated over seeds (value_states is a count, kept per run only)
+VALUE_METRICS = ("value_estimate", "true_value", "overestimation", "normalized_bias")
+VALUE_BIAS_CSV = "value_bias.csv"
 
 
 def iqm(values: np.ndarray, axis: int = -1) -> np.ndarray:
@@ -57,7 +69,8 @@ def bootstrap_ci(
 
 
 def load_runs(paths: list[Path]) -> pd.DataFrame:
-    """One row per evaluation of every run below ``paths``: env_id, algo, seed, run_dir, timesteps, mean_return."""
+    """One row per evaluation of every run below ``paths``: env_id, algo, seed, run_dir, timesteps, mean_return,
+    and the value columns (NaN for a run without them)."""
     frames = []
     for path in paths:
         for csv_path in sorted(path.rglob(EVALUATIONS_CSV)):
@@ -65,9 +78,9 @@ def load_runs(paths: list[Path]) -> pd.DataFrame:
             if not (run_dir / CONFIG_FILE).is_file():
                 continue
             config = OmegaConf.load(run_dir / CONFIG_FILE)
-            evaluations = pd.read_csv(csv_path)
+            evaluations = pd.read_csv(csv_path).reindex(columns=["timesteps", "mean_return", *VALUE_FIELDS])
             frames.append(
-                evaluations[["timesteps", "mean_return"]].assign(
+                evaluations.assign(
                     env_id=config.env.id,
                     algo=config.algo.name,
                     algo_class=str(config.algo.get("_target_", "")).rpartition(".")[2],
@@ -126,6 +139,82 @@ def aggregate(runs: pd.DataFrame, stat: str = "mean") -> tuple[pd.DataFrame, dic
     return summary, curves
 
 
+def aggregate_values(runs: pd.DataFrame, stat: str = "mean") -> tuple[pd.DataFrame, dict[tuple[str, str], pd.DataFrame]]:
+    """The critic's value estimate against the true value, over seeds: a table (one row per env and algo with
+    the columns) and, per group, the curves (``<metric>``, ``<metric>_ci_low``, ``<metric>_ci_high`` per step).
+
+    A group's runs without the value columns are left out; the others are aligned on the steps at which all of
+    them have a finite estimate and true value. The final row holds each metric's statistic over seeds and its 95%
+    bootstrap interval (``normalized_bias`` is NaN at a step where one seed's is).
+    """
+    statistic = STATISTICS[stat]
+    rows, curves = [], {}
+    if not set(VALUE_METRICS) <= set(runs.columns):
+        return pd.DataFrame(), {}
+    for (env_id, algo), group in runs.groupby(["env_id", "algo"], sort=True):
+        measured = group.dropna(subset=["value_estimate", "true_value"])
+        if measured.empty:
+            continue
+        tables = {metric: measured.pivot_table(index="timesteps", columns="run_dir", values=metric, dropna=False)
+                  for metric in VALUE_METRICS}
+        steps = tables["value_estimate"].dropna().index.intersection(tables["true_value"].dropna().index)
+        if steps.empty:
+            continue
+        curve = pd.DataFrame({"timesteps": steps})
+        for metric, table in tables.items():
+            values = table.reindex(index=steps, columns=tables["value_estimate"].columns).to_numpy()
+            low, high = bootstrap_ci(values, statistic)
+            curve[metric], curve[f"{metric}_ci_low"], curve[f"{metric}_ci_high"] = statistic(values, axis=-1), low, high
+        classes = sorted(set(group["algo_class"]) - {""}) if "algo_class" in group else []
+        run_dirs = list(tables["value_estimate"].columns)
+        curve.attrs["label"] = f"{algo} ({', '.join(classes)})" if classes else algo
+        curve.attrs["n_runs"] = len(run_dirs)
+        curves[(env_id, algo)] = curve
+        final = curve.iloc[-1]
+        seed_of = group.drop_duplicates("run_dir").set_index("run_dir")["seed"]
+        order = sorted(run_dirs, key=lambda run_dir: (seed_of[run_dir], run_dir))
+        last = tables["overestimation"].loc[int(final["timesteps"])]
+        row = {"env_id": env_id, "algo": algo, "n_runs": len(run_dirs), "timesteps": int(final["timesteps"])}
+        for metric in VALUE_METRICS:
+            row.update({metric: final[metric], f"{metric}_ci_low": final[f"{metric}_ci_low"],
+                        f"{metric}_ci_high": final[f"{metric}_ci_high"]})
+        row["seeds"] = ", ".join(str(seed_of[run_dir]) for run_dir in order)
+        row["per_seed_overestimation"] = ", ".join(f"{last[run_dir]:.1f}" for run_dir in order)
+        rows.append(row)
+    return pd.DataFrame(rows), curves
+
+
+def plot_value_curves(curves: dict[tuple[str, str], pd.DataFrame], stat: str, out_dir: Path) -> list[Path]:
+    """One PNG per environment, one panel per algo: the critic's value estimate and the true discounted return of
+    the visited states against steps, each with its 95% CI band over seeds (the TD3 paper's Figure 1)."""
+    paths = []
+    for env_id in sorted({env_id for env_id, _ in curves}):
+        algos = [(algo, curve) for (curve_env, algo), curve in sorted(curves.items()) if curve_env == env_id]
+        fig, axes = plt.subplots(1, len(algos), figsize=(4.2 * len(algos) + 0.6, 3.8), dpi=100, sharey=True, squeeze=False)
+        for ax, (algo, curve) in zip(axes[0], algos):
+            steps = curve["timesteps"]
+            for metric, color, style, label in (
+                ("value_estimate", "tab:red", "-", "critic estimate"),
+                ("true_value", "tab:green", "--", "true value"),
+            ):
+                ax.plot(steps, curve[metric], color=color, linestyle=style, label=label)
+                ax.fill_between(steps, curve[f"{metric}_ci_low"], curve[f"{metric}_ci_high"], color=color, alpha=0.2,
+                                linewidth=0)
+            n_runs = curve.attrs.get("n_runs", 0)
+            ax.set_title(curve.attrs.get("label", algo) + f", {n_runs} seed{'s' if n_runs != 1 else ''}", fontsize="medium")
+            ax.set_xlabel("environment steps")
+            ax.grid(alpha=0.3)
+        axes[0][0].set_ylabel(f"value of the visited states ({stat}, 95% CI)")
+        axes[0][0].legend(loc="upper left", fontsize="small")
+        fig.suptitle(f"{env_id}: value estimate against true value")
+        fig.tight_layout()
+        path = out_dir / f"value_bias_{env_id}.png"
+        fig.savefig(path)
+        plt.close(fig)
+        paths.append(path)
+    return paths
+
+
 def plot_curves(curves: dict[tuple[str, str], pd.DataFrame], stat: str, out_dir: Path) -> list[Path]:
     """One PNG per environment: the statistic of every algo against steps, with its 95% CI band and each seed's
     curve as a thin line."""
@@ -175,6 +264,13 @@ def main(argv: list[str] | None = None) -> int:
     plots = plot_curves(curves, args.stat, out_dir)
     print(markdown)
     written = [out_dir / "aggregate.csv", out_dir / "aggregate.md", out_dir / "per_seed.csv", *plots]
+    value_table, value_curves = aggregate_values(runs, args.stat)
+    if not value_table.empty:
+        value_table.to_csv(out_dir / VALUE_BIAS_CSV, index=False)
+        shown = value_table[["env_id", "algo", "n_runs", "timesteps", *VALUE_METRICS, "per_seed_overestimation"]].copy()
+        shown["normalized_bias"] = shown["normalized_bias"].map(lambda value: f"{value:.3f}")  # a ratio: one decimal is too few
+        print("\nValue estimate against true value (the critic's overestimation):\n" + to_markdown(shown))
+        written += [out_dir / VALUE_BIAS_CSV, *plot_value_curves(value_curves, args.stat, out_dir)]
     print(f"\nWrote {', '.join(map(str, written))}")
     return 0
 

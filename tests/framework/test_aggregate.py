@@ -55,3 +55,41 @@ def test_the_command_writes_a_table_and_one_plot_per_env(tmp_path, capsys):
 def test_the_command_says_when_there_is_nothing_to_aggregate(tmp_path, capsys):
     assert main([str(tmp_path)]) == 2
     assert "No run folder" in capsys.readouterr().err
+
+
+def write_value_run(run_dir, algo, seed, estimates, true_values):
+    """A run whose evaluations measured the critic's value (the columns of eval.value_bias)."""
+    write_run(run_dir, "Hopper-v5", algo, seed, [1.0] * len(estimates))
+    evaluations = pd.read_csv(run_dir / "evaluations.csv")
+    estimates, true_values = np.array(estimates), np.array(true_values)
+    evaluations = evaluations.assign(value_estimate=estimates, true_value=true_values, overestimation=estimates - true_values,
+                                     normalized_bias=(estimates - true_values) / np.abs(true_values), value_states=100)
+    evaluations.to_csv(run_dir / "evaluations.csv", index=False)
+
+
+def test_the_value_columns_are_aggregated_over_seeds_and_runs_without_them_still_aggregate(tmp_path, capsys):
+    runs = tmp_path / "runs"
+    for seed in range(3):
+        write_value_run(runs / f"ddpg_{seed}", "ddpg", seed, [20.0, 30.0 + seed, 40.0 + 2 * seed], [10.0, 10.0, 20.0])
+    write_value_run(runs / "td3_0", "td3", 0, [5.0, float("nan"), 8.0], [10.0, 10.0, 10.0])  # NaN: no state that time
+    write_run(runs / "td3_old", "Hopper-v5", "td3", 1, [1.0, 2.0, 3.0])  # made before the value columns
+    assert main([str(runs), "--out", str(tmp_path / "out")]) == 0
+    table = pd.read_csv(tmp_path / "out" / "aggregate.csv")  # returns: every run, the old one included
+    assert table.set_index("algo").loc["td3", "n_runs"] == 2
+    values = pd.read_csv(tmp_path / "out" / "value_bias.csv").set_index("algo")
+    ddpg, td3 = values.loc["ddpg"], values.loc["td3"]
+    assert ddpg.n_runs == 3 and ddpg.timesteps == 3000 and ddpg.seeds == "0, 1, 2"
+    assert ddpg.value_estimate == pytest.approx(42.0) and ddpg.true_value == pytest.approx(20.0)
+    assert ddpg.overestimation == pytest.approx(22.0) and ddpg.normalized_bias == pytest.approx(1.1)
+    assert ddpg.overestimation_ci_low <= 22.0 <= ddpg.overestimation_ci_high and ddpg.overestimation_ci_low == 20.0
+    assert ddpg.per_seed_overestimation == "20.0, 22.0, 24.0"
+    assert td3.n_runs == 1 and td3.timesteps == 3000 and td3.overestimation == pytest.approx(-2.0)
+    assert td3.normalized_bias == pytest.approx(-0.2)
+    assert (tmp_path / "out" / "value_bias_Hopper-v5.png").is_file()
+    assert "| Hopper-v5 | ddpg | 3 | 3000 | 42.0 | 20.0 | 22.0 | 1.100 | 20.0, 22.0, 24.0 |" in capsys.readouterr().out
+
+
+def test_runs_without_the_value_columns_write_no_value_table(tmp_path):
+    write_run(tmp_path / "runs" / "old", "Hopper-v5", "td3", 0, [1.0, 2.0])
+    assert main([str(tmp_path / "runs"), "--out", str(tmp_path / "out")]) == 0
+    assert (tmp_path / "out" / "aggregate.csv").is_file() and not (tmp_path / "out" / "value_bias.csv").exists()

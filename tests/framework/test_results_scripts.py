@@ -72,7 +72,8 @@ def test_publish_copies_the_records_and_aggregates_them(tmp_path):
         running / "evaluations.csv", index=False)
     docs = tmp_path / "docs"
     page = tmp_path / "results.md"
-    page.write_text("# Results\n<!-- ABLATION -->\nold\n<!-- /ABLATION -->\ntext\n<!-- MUJOCO -->\n<!-- /MUJOCO -->\n")
+    page.write_text("# Results\n<!-- ABLATION -->\nold\n<!-- /ABLATION -->\ntext\n<!-- MUJOCO -->\n<!-- /MUJOCO -->\n"
+                    "<!-- VALUE_BIAS -->\n<!-- /VALUE_BIAS -->\n")
     out = subprocess.run(
         ["bash", str(REPO / "scripts" / "publish_results.sh"), str(tmp_path / "runs")],
         cwd=tmp_path,  # the script works from the repository root whatever the caller's folder
@@ -105,6 +106,15 @@ def test_publish_copies_the_records_and_aggregates_them(tmp_path):
     hopper = next(line for line in lines if line.startswith("| Hopper-v5"))
     assert hopper.split("|")[3].strip() == "600" and hopper.split("|")[5].strip().count(",") == 1  # two seeds' finals
     assert "| Ant-v5 | 0: not started, 1: not started, 2: not started | | | | |" in lines
+    # The overestimation table (the paper's Figure 1) from the value columns of the finished seeds
+    values = pd.read_csv(docs / "value_bias" / "value_bias.csv")
+    assert list(values.algo) == ["td3"] and values.n_runs[0] == 2 and values.timesteps[0] == 600
+    assert (docs / "value_bias" / "value_bias_Hopper-v5.png").is_file()
+    td3_values = next(line for line in lines if line.startswith("| Hopper-v5, TD3 (`td3`)"))
+    cells = [cell.strip() for cell in td3_values.split("|")[1:-1]]
+    assert cells[1] == "0: 600, 1: 600, 2: 300 of 600, 3: not started, 4: not started" and cells[2] == "600"  # 5 planned
+    assert float(cells[5].split()[0]) == pytest.approx(values.overestimation[0], abs=0.05) and cells[7].startswith("0: ")
+    assert next(line for line in lines if line.startswith("| Hopper-v5, DDPG")).count("not started") == 5
 
 
 def test_results_tables_refuse_a_page_without_markers(tmp_path):
