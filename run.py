@@ -11,6 +11,7 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig
 
+from sb3_td3x.common.redaction import redact_log_records
 from sb3_td3x.experiment.cli import check_command_line
 from sb3_td3x.experiment.cli import main as run_main
 
@@ -23,5 +24,6 @@ def main(cfg: DictConfig) -> float:
 
 
 if __name__ == "__main__":
+    redact_log_records()  # every log line of the run, Hydra's included, with its secrets masked
     check_command_line(sys.argv[1:], CONF_DIR)
     main()

@@ -6,7 +6,8 @@
 #
 # Installs PostgreSQL from Debian's packages when it is missing, makes a cluster of its own in $PGDATA
 # (default /var/tmp/sb3-td3x-postgres), listening on 127.0.0.1:$PGPORT (default 55432) only, with a user and a
-# database for the tests. Idempotent: a second call finds the server running and prints the same URL.
+# database for the tests, and a second pair for the test of secrets (tests/framework/test_no_secret_in_records.py).
+# Idempotent: a second call finds the server running, adds what is missing, and prints the same URL.
 # Everything runs in a subshell, so that sourcing this file leaves the caller's shell as it was.
 _sb3_td3x_start_postgres() (
   set -euo pipefail
@@ -16,6 +17,8 @@ _sb3_td3x_start_postgres() (
   DB_USER=td3x
   DB_PASSWORD=td3x
   DB_NAME=td3x_test
+  SECRET_USER=td3x_secret
+  SECRET_PASSWORD='p@ss:w/rd%'
   SOCKET_DIR="$PGDATA"
 
   log() { echo "[postgres.sh] $*" >&2; }
@@ -70,6 +73,14 @@ _sb3_td3x_start_postgres() (
   fi
   if [ "$(psql_admin -c "SELECT 1 FROM pg_database WHERE datname = '$DB_NAME'")" != 1 ]; then
     psql_admin -c "CREATE DATABASE $DB_NAME OWNER $DB_USER" >&2
+  fi
+  # A second user whose password has the characters a URL must encode, with a database of its own, for
+  # tests/framework/test_no_secret_in_records.py (which knows both and reaches them at this server's host and port).
+  if [ "$(psql_admin -c "SELECT 1 FROM pg_roles WHERE rolname = '$SECRET_USER'")" != 1 ]; then
+    psql_admin -c "CREATE ROLE $SECRET_USER LOGIN PASSWORD '$SECRET_PASSWORD'" >&2
+  fi
+  if [ "$(psql_admin -c "SELECT 1 FROM pg_database WHERE datname = '$SECRET_USER'")" != 1 ]; then
+    psql_admin -c "CREATE DATABASE $SECRET_USER OWNER $SECRET_USER" >&2
   fi
 
   echo "postgresql://$DB_USER:$DB_PASSWORD@127.0.0.1:$PGPORT/$DB_NAME"

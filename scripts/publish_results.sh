@@ -15,12 +15,24 @@ cd "$root"
 python=${PYTHON:-python}
 [[ -d $src ]] || { echo "error: no folder $src; make the runs first with scripts/results.sh" >&2; exit 2; }
 
-while IFS= read -r -d '' file; do
+records=()
+while IFS= read -r -d '' file; do records+=("$file"); done < <(find "$src" -path '*/checkpoints' -prune -o \
+  -path '*/.hydra' -prune -o -type f \
+  \( -name evaluations.csv -o -name config.yaml -o -name summary.json -o -name provenance.jsonl \) -print0)
+
+# Nothing is published while one record holds something that looks like a secret (a URL's password, an API key):
+# the check names the file and line, with the secret masked.
+if ((${#records[@]})) && ! "$python" -m sb3_td3x.common.redaction "${records[@]}"; then
+  echo "error: not publishing: the records above look like they hold a secret; mask it (e.g. ***) in those files" \
+    "or leave them out, then run this again" >&2
+  exit 2
+fi
+
+for file in "${records[@]}"; do
   relative=${file#"$src"/}
   mkdir -p "$dst/runs/$(dirname "$relative")"
   cp "$file" "$dst/runs/$relative"
-done < <(find "$src" -path '*/checkpoints' -prune -o -path '*/.hydra' -prune -o -type f \
-  \( -name evaluations.csv -o -name config.yaml -o -name summary.json -o -name provenance.jsonl \) -print0)
+done
 
 aggregate() {  # OUT_NAME then group folders <env>/<algo> (those that exist)
   local out=$1 dirs=() group seed finished

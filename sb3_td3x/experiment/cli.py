@@ -1,5 +1,6 @@
 """What ``run.py`` does around :func:`~sb3_td3x.experiment.runner.run_experiment`: pick the run folder, rebuild
-the config of a resumed run, and turn user errors into a one-paragraph message and an exit status."""
+the config of a resumed run, mask the secrets in Hydra's own records, and turn user errors into a one-paragraph
+message and an exit status."""
 
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
+from sb3_td3x.common.redaction import redact
 from sb3_td3x.experiment.checkpoints import resume_checkpoint
 from sb3_td3x.experiment.errors import ConfigError, TrainingDiverged, TrainingInterrupted
 from sb3_td3x.experiment.runner import CONFIG_FILE, run_experiment
@@ -102,6 +104,7 @@ def main(cfg: DictConfig) -> float:
     In a multirun, a diverged job prints its message and returns NaN, so the other jobs of the sweep go on.
     """
     hydra_cfg = HydraConfig.get()
+    redact_hydra_records(hydra_cfg)
     try:
         if cfg.resume is not None:
             cfg = config_for_resume(cfg, list(hydra_cfg.overrides.task))
@@ -117,11 +120,34 @@ def main(cfg: DictConfig) -> float:
     except TrainingDiverged as error:
         if hydra_cfg.mode == RunMode.MULTIRUN:
             # One diverged job must not abort the sweep and lose the jobs running beside it.
-            print(f"Error: {error}", file=sys.stderr)
+            print(redact(f"Error: {error}"), file=sys.stderr)
             return math.nan
         _exit(f"Error: {error}", EXIT_DIVERGED)
     except TrainingInterrupted as error:
         _exit(str(error), error.exit_code)
+
+
+def redact_hydra_records(hydra_cfg: DictConfig) -> None:
+    """Mask the secrets in the files Hydra wrote before the job started: ``.hydra/{config,hydra,overrides}.yaml``
+    of the run folder (they hold the command line's overrides, ``hydra.job.env_set``, ...) and, in a multirun,
+    the sweep folder's ``multirun.yaml``. Files without a secret are left as they are."""
+    files: list[Path] = []
+    if hydra_cfg.output_subdir is not None:
+        files += sorted((Path(hydra_cfg.runtime.output_dir) / str(hydra_cfg.output_subdir)).glob("*.yaml"))
+    if hydra_cfg.mode == RunMode.MULTIRUN:
+        files.append(Path(hydra_cfg.sweep.dir) / "multirun.yaml")
+    for path in files:
+        try:
+            text = path.read_text()
+            tree = OmegaConf.to_container(OmegaConf.create(text), resolve=False)
+        except (OSError, OmegaConfBaseException, ValueError):
+            continue  # not written (yet), or not YAML OmegaConf reads: nothing of ours
+        redacted = redact(tree)
+        if redacted == tree:
+            continue
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")  # jobs of a multirun may rewrite multirun.yaml together
+        tmp.write_text(OmegaConf.to_yaml(OmegaConf.create(redacted)))
+        os.replace(tmp, path)
 
 
 def config_for_resume(cfg: DictConfig, overrides: list[str]) -> DictConfig:
@@ -154,5 +180,5 @@ def _one_paragraph(error: Exception) -> str:
 
 
 def _exit(message: str, code: int) -> None:
-    print(message, file=sys.stderr)
+    print(redact(message), file=sys.stderr)
     sys.exit(code)

@@ -3,21 +3,45 @@
 Every metric goes through SB3's ``Logger`` (``train/*`` and ``rollout/*`` from the algorithm, ``eval/*`` from
 :class:`~sb3_td3x.experiment.callbacks.PeriodicEvaluation`); W&B is one more output format of it, so TensorBoard
 and W&B always show the same numbers. The W&B API key is read by ``wandb`` itself (``WANDB_API_KEY`` or
-``wandb login``) and never passes through the config.
+``wandb login``) and never passes through the config. What reaches TensorBoard as text or hyper-parameters, and
+W&B as config or command line, goes through :func:`~sb3_td3x.common.redaction.redact` first.
 """
 
 from __future__ import annotations
 
+import contextlib
 import netrc
 import os
+import sys
 import uuid
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 from omegaconf import DictConfig
-from stable_baselines3.common.logger import KVWriter, Logger, TensorBoardOutputFormat
+from stable_baselines3.common.logger import HParam, KVWriter, Logger, TensorBoardOutputFormat
+
+from sb3_td3x.common.redaction import redact
 
 WANDB_ID_FILE = "wandb_run_id.txt"
+
+
+class RedactedTensorBoardOutputFormat(TensorBoardOutputFormat):
+    """SB3's TensorBoard output, with text values and hyper-parameters redacted (secrets masked) before they are
+    written."""
+
+    def write(self, key_values: dict[str, Any], key_excluded: dict[str, tuple[str, ...]], step: int = 0) -> None:
+        redacted = {
+            key: (
+                redact(value)
+                if isinstance(value, str)
+                else HParam(redact(dict(value.hparam_dict)), value.metric_dict)
+                if isinstance(value, HParam)
+                else value
+            )
+            for key, value in key_values.items()
+        }
+        super().write(redacted, key_excluded, step)
 
 
 class WandbOutputFormat(KVWriter):
@@ -71,26 +95,38 @@ def start_wandb(wandb_cfg: DictConfig, run_dir: Path, run_name: str, config: dic
         id_file.read_text().strip() if id_file.is_file() else uuid.uuid4().hex[:8]
     )  # os.urandom: leaves the seeded generators alone
     id_file.write_text(run_id)
-    return wandb.init(
-        project=wandb_cfg.project,
-        entity=wandb_cfg.entity,
-        group=wandb_cfg.group,
-        tags=list(wandb_cfg.tags),
-        name=run_name,
-        id=run_id,
-        resume="allow",
-        config=config,
-        dir=str(run_dir),
-        mode=wandb_mode(wandb_cfg.mode),
-        settings=wandb.Settings(console="off", save_code=False, x_disable_stats=True, silent=True),
-    )
+    with _redacted_argv():  # W&B records the command line in the run's metadata
+        return wandb.init(
+            project=wandb_cfg.project,
+            entity=wandb_cfg.entity,
+            group=wandb_cfg.group,
+            tags=list(wandb_cfg.tags),
+            name=run_name,
+            id=run_id,
+            resume="allow",
+            config=redact(config),
+            dir=str(run_dir),
+            mode=wandb_mode(wandb_cfg.mode),
+            settings=wandb.Settings(console="off", save_code=False, x_disable_stats=True, silent=True),
+        )
+
+
+@contextlib.contextmanager
+def _redacted_argv() -> Iterator[None]:
+    """``sys.argv`` with its secrets masked, for the time of the block."""
+    saved = sys.argv
+    sys.argv = redact(list(saved))
+    try:
+        yield
+    finally:
+        sys.argv = saved
 
 
 def build_logger(logger_cfg: DictConfig, run_dir: Path, wandb_run: Any | None) -> Logger:
     """SB3 ``Logger`` writing TensorBoard events to ``run_dir/tb`` and/or to W&B."""
     output_formats: list[KVWriter] = []
     if logger_cfg.tensorboard:
-        output_formats.append(TensorBoardOutputFormat(str(run_dir / "tb")))
+        output_formats.append(RedactedTensorBoardOutputFormat(str(run_dir / "tb")))
     if wandb_run is not None:
         output_formats.append(WandbOutputFormat(wandb_run))
     return Logger(folder=str(run_dir), output_formats=output_formats)

@@ -20,6 +20,7 @@ from pathlib import Path
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from sb3_td3x.common.redaction import redact
 from sb3_td3x.experiment.algos import algorithm_class, build_algorithm
 from sb3_td3x.experiment.callbacks import Checkpointer, DivergenceCheck, PeriodicEvaluation, ProgressBar, StopOnSignal
 from sb3_td3x.experiment.checkpoints import load_checkpoint, resume_checkpoint
@@ -86,7 +87,7 @@ def run_experiment(cfg: DictConfig, report: Callable[[int, float], None] | None 
 
         with open(run_dir / PROVENANCE_FILE, "a") as file:  # one line per session: a run may span several
             record = {"started": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "at_step": int(model.num_timesteps), **provenance()}
-            file.write(json.dumps(record) + "\n")
+            file.write(json.dumps(redact(record)) + "\n")
 
         run_name = f"{cfg.env.name}_{cfg.algo.name}_seed{cfg.seed}"
         wandb_run = start_wandb(cfg.logger.wandb, run_dir, run_name, config) if cfg.logger.wandb is not None else None
@@ -161,7 +162,7 @@ def run_experiment(cfg: DictConfig, report: Callable[[int, float], None] | None 
             "wall_time_s_this_session": time.time() - started,
             "provenance": provenance(),
         }
-        (run_dir / SUMMARY_FILE).write_text(json.dumps(summary, indent=2))
+        (run_dir / SUMMARY_FILE).write_text(json.dumps(redact(summary), indent=2))
         if cfg.video is not None:
             path = record_video(
                 model, cfg.env, cfg.video, run_dir / f"video.{cfg.video.format}", cfg.seed + cfg.eval.seed_offset
@@ -190,8 +191,9 @@ def run_experiment(cfg: DictConfig, report: Callable[[int, float], None] | None 
 
 
 def provenance() -> dict[str, object]:
-    """Where a result came from: the command, the package's git commit (``-dirty`` with uncommitted changes; None
-    outside a git checkout), the machine and the library versions. Goes into ``summary.json``."""
+    """Where a result came from: the command (its secrets masked, :func:`~sb3_td3x.common.redaction.redact`), the
+    package's git commit (``-dirty`` with uncommitted changes; None outside a git checkout), the machine and the
+    library versions. Goes into ``summary.json``."""
     import stable_baselines3
 
     root = Path(__file__).resolve().parents[2]
@@ -213,7 +215,7 @@ def provenance() -> dict[str, object]:
     except (OSError, StopIteration):
         pass
     return {
-        "command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]]),
+        "command": " ".join(redact([Path(sys.argv[0]).name, *sys.argv[1:]])),
         "commit": commit,
         "machine": {"cpu": cpu, "cores": os.cpu_count(), "torch_threads": torch.get_num_threads(), "os": platform.platform()},
         "versions": {

@@ -10,7 +10,6 @@ checks ranges and names (``algo.tau`` in (0, 1], a registered gymnasium id, ...)
 from __future__ import annotations
 
 import difflib
-import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -21,6 +20,7 @@ from hydra import compose, initialize_config_dir
 from hydra.core.config_store import ConfigStore
 from omegaconf import II, MISSING, DictConfig, OmegaConf
 
+from sb3_td3x.common.redaction import redact
 from sb3_td3x.experiment.errors import ConfigError
 
 # conf/ of a source checkout (run.py's config_path).
@@ -271,23 +271,12 @@ def _env_id_problems(env_id: str) -> list[str]:
     return [f"env.id={env_id!r} is not a registered gymnasium environment.{hint}"]
 
 
-_SECRET_KEY = re.compile(r"(api_?key|token|secret|password|credential)", re.IGNORECASE)
-REDACTED = "<redacted>"
-
-
 def public_config(cfg: DictConfig) -> dict[str, Any]:
-    """The resolved config as plain containers, with any value under a credential-like key replaced by ``<redacted>``.
+    """The resolved config as plain containers, with its secrets masked (``***``) by
+    :func:`sb3_td3x.common.redaction.redact`: the value under a credential-like key, the password of a URL.
 
     This is what is saved in the run folder and sent to W&B. The schemas have no credential field (W&B reads its
     key from ``WANDB_API_KEY`` or ``wandb login``), but free-form dicts such as ``env.kwargs`` could receive one.
     """
     container = OmegaConf.to_container(cfg, resolve=True, throw_on_missing=True)
-    return _redact(container)  # type: ignore[return-value]
-
-
-def _redact(node: Any) -> Any:
-    if isinstance(node, dict):
-        return {key: REDACTED if _SECRET_KEY.search(str(key)) else _redact(value) for key, value in node.items()}
-    if isinstance(node, list):
-        return [_redact(value) for value in node]
-    return node
+    return redact(container)  # type: ignore[return-value]

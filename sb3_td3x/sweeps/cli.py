@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import signal
 import sys
 import threading
 from pathlib import Path
 
+from sb3_td3x.common.redaction import redact, redact_log_records
 from sb3_td3x.sweeps.errors import SweepError
 
 logger = logging.getLogger("sb3_td3x.sweeps")
@@ -87,7 +89,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return _run(args)
     except SweepError as err:
-        print(f"error: {err}", file=sys.stderr)
+        print(redact(f"error: {err}"), file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("Interrupted outside a trial; the study is consistent. Run the same command to continue.", file=sys.stderr)
@@ -126,7 +128,12 @@ def _run(args: argparse.Namespace) -> int:
 
     def finish(finished_study: optuna.Study) -> None:
         files = write_results(
-            finished_study, study_dir, config_dir, study_storage.display_url, study_storage.dashboard_command()
+            finished_study,
+            study_dir,
+            config_dir,
+            study_storage.display_url,
+            study_storage.dashboard_command(),
+            study_storage.password_hint(),
         )
         print(files.summary)
         if files.best_overrides is not None:
@@ -154,7 +161,7 @@ def _run(args: argparse.Namespace) -> int:
             on_finished=finish,
         )
     except SweepInterrupted as err:
-        print(str(err), file=sys.stderr)
+        print(redact(str(err)), file=sys.stderr)
         return 130
     finally:
         if in_main_thread:
@@ -177,7 +184,7 @@ def _launch(args: argparse.Namespace, storage_url: str, study_dir: Path, study_n
         logger.warning(
             "SQLite on a cluster's shared file system is fragile with many workers; prefer --storage postgresql://..."
         )
-    worker_argv = _worker_argv(args, storage_url, study_dir, config_dir)
+    worker_argv = _worker_argv(args, _password_to_environment(storage_url), study_dir, config_dir)
     jobs = submit_workers(cluster, executor_params, args.workers, main, worker_argv)
     print(f"submitted {len(jobs)} {cluster} worker job(s): {', '.join(str(job.job_id) for job in jobs)}")
     print(f"job logs: {study_dir / 'jobs'}; the last worker writes the results into {study_dir}")
@@ -193,6 +200,22 @@ def _launch(args: argparse.Namespace, storage_url: str, study_dir: Path, study_n
             ) from None
     print(f"workers exited with {codes}")
     return max(codes)
+
+
+def _password_to_environment(storage_url: str) -> str:
+    """The storage URL without its password, which goes to ``$SB3_TD3X_STORAGE_PASSWORD`` of this process, so
+    that the worker jobs (which inherit its environment) get it without it being written in their job files."""
+    from sqlalchemy.engine import make_url
+
+    from sb3_td3x.sweeps.storage import PASSWORD_ENV, is_journal
+
+    if is_journal(storage_url) or "://" not in storage_url:
+        return storage_url
+    parsed = make_url(storage_url)  # open_storage has read it already
+    if not parsed.password:
+        return storage_url
+    os.environ[PASSWORD_ENV] = str(parsed.password)
+    return parsed._replace(password=None).render_as_string(hide_password=False)  # set() would keep it
 
 
 def _worker_argv(args: argparse.Namespace, storage_url: str, study_dir: Path, config_dir: Path) -> list[str]:
@@ -236,3 +259,4 @@ def _setup_logging(quiet: bool) -> None:
     logger.handlers[:] = [handler]
     logger.setLevel(logging.WARNING if quiet else logging.INFO)
     logger.propagate = False
+    redact_log_records()  # no password or key in any log line

@@ -2,7 +2,8 @@
 
 The trial's Hydra overrides are the sweep file's ``overrides``, the command line's, one ``path=value`` per searched
 parameter, ``seed=<sweep seed + trial number>`` and ``run_dir=<study folder>/trial_NNNN``. They are stored on the
-trial (``user_attrs``) before training starts, so every trial, finished or not, can be re-run by hand::
+trial (``user_attrs``, secrets masked) before training starts, so every trial, finished or not, can be re-run by
+hand::
 
     python run.py <the trial's overrides>
 """
@@ -20,6 +21,7 @@ from typing import Any
 import optuna
 from omegaconf import DictConfig
 
+from sb3_td3x.common.redaction import redact
 from sb3_td3x.sweeps.errors import SweepSpecError
 from sb3_td3x.sweeps.spec import SweepSpec
 
@@ -149,7 +151,7 @@ class TrialObjective:
         for inherited in ("fail_reason", "prune_reason", RESUMABLE):  # a queued copy inherits its original's
             if trial.user_attrs.get(inherited) is not None:
                 trial.set_user_attr(inherited, None)
-        trial.set_user_attr("overrides", overrides)
+        trial.set_user_attr("overrides", redact(overrides))  # secrets masked: the study is a record too
         trial.set_user_attr("seed", seed)
         trial.set_user_attr("run_dir", str(run_dir))
         trial.set_user_attr("worker", f"{socket.gethostname()}:{os.getpid()}")
@@ -218,4 +220,4 @@ class TrialObjective:
         import traceback
 
         run_dir.mkdir(parents=True, exist_ok=True)
-        (run_dir / "sweep_error.txt").write_text(traceback.format_exc())
+        (run_dir / "sweep_error.txt").write_text(redact(traceback.format_exc()))

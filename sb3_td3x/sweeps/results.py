@@ -9,7 +9,8 @@
 * ``plots/``: Optuna's optimization history, parameter importances and intermediate values (matplotlib PNGs).
 
 Files are written to a temporary name and moved into place, so a reader never sees half a file even when two
-workers finish at once.
+workers finish at once. ``summary.txt`` and ``trials.csv`` go through :func:`~sb3_td3x.common.redaction.redact`
+(the workers also redact what they store on trials, but a study may hold older records).
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ import optuna
 from omegaconf import OmegaConf
 from optuna.trial import FrozenTrial, TrialState
 
+from sb3_td3x.common.redaction import redact
 from sb3_td3x.sweeps.objective import TRIAL_DEFAULTS
 
 logger = logging.getLogger(__name__)
@@ -91,7 +93,11 @@ def _config_groups(config_dir: Path, overrides: list[str]) -> set[str]:
     return {group for group in cfg.hydra.runtime.choices if not group.startswith("hydra/")}
 
 
-def summary_text(study: optuna.Study, storage_display: str, dashboard_command: str) -> str:
+def summary_text(
+    study: optuna.Study, storage_display: str, dashboard_command: str, dashboard_hint: str | None = None
+) -> str:
+    """The text of ``summary.txt``, secrets masked; ``dashboard_hint`` (a sentence on how to give the dashboard a
+    masked password) goes under the dashboard command."""
     trials = study.get_trials(deepcopy=False)
     counts = Counter(t.state.name for t in trials)
     metric = study.user_attrs.get("metric", "value")
@@ -120,7 +126,9 @@ def summary_text(study: optuna.Study, storage_display: str, dashboard_command: s
             reason = t.user_attrs.get("fail_reason") or t.user_attrs.get("prune_reason") or STALE_REASON
             lines.append(f"  {t.number:4d} {t.state.name:7s} {reason}")
     lines += ["", f"dashboard: {dashboard_command}"]
-    return "\n".join(lines) + "\n"
+    if dashboard_hint:
+        lines.append(f"  {dashboard_hint}")
+    return redact("\n".join(lines) + "\n")
 
 
 def _table(trials: list[FrozenTrial]) -> str:
@@ -132,7 +140,7 @@ def _table(trials: list[FrozenTrial]) -> str:
 
 def trials_csv(study: optuna.Study) -> str:
     frame = study.trials_dataframe(attrs=("number", "state", "value", "params", "user_attrs", "datetime_start", "duration"))
-    return frame.to_csv(index=False)
+    return redact(frame.to_csv(index=False))
 
 
 def save_plots(study: optuna.Study, plot_dir: Path) -> list[Path]:
@@ -170,16 +178,21 @@ def save_plots(study: optuna.Study, plot_dir: Path) -> list[Path]:
 
 
 def write_results(
-    study: optuna.Study, study_dir: Path, config_dir: Path, storage_display: str, dashboard_command: str
+    study: optuna.Study,
+    study_dir: Path,
+    config_dir: Path,
+    storage_display: str,
+    dashboard_command: str,
+    dashboard_hint: str | None = None,
 ) -> ResultFiles:
     """Write the study's results into ``study_dir`` (see the module docstring)."""
-    summary = summary_text(study, storage_display, dashboard_command)
+    summary = summary_text(study, storage_display, dashboard_command, dashboard_hint)
     _atomic_write(study_dir / "summary.txt", summary)
     if study.get_trials(deepcopy=False):
         _atomic_write(study_dir / "trials.csv", trials_csv(study))
     best_path = None
     if any(t.state == TrialState.COMPLETE for t in study.get_trials(deepcopy=False)):
-        overrides = best_overrides(study.best_trial)
+        overrides = redact(best_overrides(study.best_trial))
         best_path = study_dir / "best_overrides.txt"
         _atomic_write(best_path, "\n".join(overrides) + "\n")
         _atomic_write(study_dir / TUNED_GROUP / "best.yaml", tuned_config(overrides, config_dir))

@@ -9,6 +9,10 @@ Three things about a storage matter to a sweep and live here:
   storage shares, so that together they run exactly ``n_trials``. SQLite and journal files use a lock file beside
   them (one machine, or a shared file system with working ``flock``); PostgreSQL an advisory lock; MySQL
   ``GET_LOCK``.
+
+A database password never reaches a record or a log line: what is shown goes through
+:func:`~sb3_td3x.common.redaction.redact`. A URL given without a password takes it from
+``SB3_TD3X_STORAGE_PASSWORD`` (any database; PostgreSQL's driver also reads ``PGPASSWORD`` and ``~/.pgpass``).
 """
 
 from __future__ import annotations
@@ -17,6 +21,7 @@ import contextlib
 import fcntl
 import hashlib
 import logging
+import os
 import threading
 import time
 import warnings
@@ -29,29 +34,58 @@ import optuna
 from optuna.storages import BaseStorage, JournalStorage, RDBStorage, RetryHeartbeatStaleTrialCallback
 from optuna.storages.journal import JournalFileBackend
 
+from sb3_td3x.common.redaction import redact
 from sb3_td3x.sweeps.errors import StorageError
 
 logger = logging.getLogger(__name__)
 
 JOURNAL_PREFIX = "journal:"
 
+#: The password of a storage URL written without one (``postgresql://user@host/db``): it then stays out of the
+#: command line, where ``ps`` shows it, and out of the launcher's job files.
+PASSWORD_ENV = "SB3_TD3X_STORAGE_PASSWORD"
+
 
 @dataclass
 class StudyStorage:
     """An opened storage, with what a worker needs beside Optuna's own storage object."""
 
-    url: str  #: as the user gave it; what ``optuna-dashboard`` is pointed at (a path for a journal file)
+    url: str  #: as the user gave it (with its password): never show it, show :attr:`display_url`
     storage: BaseStorage
     budget_lock: Callable[[], AbstractContextManager[None]]
     heartbeat_interval: int | None  #: ``None`` where the storage has no heartbeat (journal files)
 
     @property
     def display_url(self) -> str:
-        return mask_password(self.url)
+        """The URL with its password masked (``***``)."""
+        return redact(self.url)
 
     def dashboard_command(self) -> str:
-        target = journal_path(self.url) if is_journal(self.url) else self.url
+        """The ``optuna-dashboard`` command for this storage, its password masked (see :meth:`password_hint`)."""
+        target = str(journal_path(self.url)) if is_journal(self.url) else self.display_url
         return f"optuna-dashboard {target}"
+
+    def password_hint(self) -> str | None:
+        """How to give ``optuna-dashboard`` the password that :meth:`dashboard_command` masks; None without one."""
+        if is_journal(self.url) or self.display_url == self.url:
+            return None
+        from sqlalchemy.engine import make_url
+
+        try:
+            parsed = make_url(self.url)
+        except Exception:  # noqa: BLE001  (a URL only redact() could read: say it generally)
+            parsed = None
+        if parsed is not None and parsed.get_backend_name() == "postgresql":
+            without = parsed._replace(password=None).render_as_string(hide_password=False)  # set() keeps it
+            return (
+                "The password is masked (***): give it through the environment, "
+                f"PGPASSWORD=<password> optuna-dashboard {without}, or pass the whole URL from a variable, "
+                'optuna-dashboard "$STORAGE_URL".'
+            )
+        return (
+            "The password is masked (***): pass the whole URL from an environment variable rather than on the "
+            'command line, optuna-dashboard "$STORAGE_URL".'
+        )
 
 
 def is_journal(url: str) -> bool:
@@ -60,18 +94,6 @@ def is_journal(url: str) -> bool:
 
 def journal_path(url: str) -> Path:
     return Path(url.removeprefix(JOURNAL_PREFIX).removeprefix("//"))
-
-
-def mask_password(url: str) -> str:
-    if "://" not in url:
-        return url
-    from sqlalchemy.engine import make_url
-    from sqlalchemy.exc import ArgumentError
-
-    try:
-        return make_url(url).render_as_string(hide_password=True)
-    except ArgumentError:  # not a SQLAlchemy URL: open_storage reports that; here it is only shown
-        return url
 
 
 def default_storage_url(study_dir: Path) -> str:
@@ -89,7 +111,8 @@ def open_storage(
     """Open (and create where needed) the storage at ``url``.
 
     :param url: ``sqlite:///path.db``, ``postgresql://user:password@host:5432/db``, any other SQLAlchemy URL,
-        or ``journal:path.log`` / ``path.log`` for Optuna's journal file
+        or ``journal:path.log`` / ``path.log`` for Optuna's journal file; a database URL without a password takes
+        the one in ``$SB3_TD3X_STORAGE_PASSWORD``, if set
     :param study_name: names the budget lock, so that studies sharing a database do not wait on each other
     :param heartbeat_interval: seconds between heartbeats of a running trial (database storages)
     :param grace_period: seconds without a heartbeat after which a running trial is marked FAIL;
@@ -113,8 +136,11 @@ def _open_rdb(url: str, study_name: str, heartbeat_interval: int, grace_period: 
     try:
         parsed = make_url(url)
     except sqlalchemy.exc.ArgumentError:
-        raise StorageError(f"storage {mask_password(url)!r} is not a valid SQLAlchemy URL") from None
+        raise StorageError(f"storage {redact(url)!r} is not a valid SQLAlchemy URL") from None
     backend = parsed.get_backend_name()
+    if parsed.password is None and backend != "sqlite" and os.environ.get(PASSWORD_ENV):
+        parsed = parsed.set(password=os.environ[PASSWORD_ENV])
+        url = parsed.render_as_string(hide_password=False)
     if parsed.drivername == "postgresql" and not _importable("psycopg") and _importable("psycopg2"):
         # SQLAlchemy 2.1 reads postgresql:// as psycopg 3; this package installs psycopg2 (psycopg2-binary)
         parsed = parsed.set(drivername="postgresql+psycopg2")
@@ -139,16 +165,16 @@ def _open_rdb(url: str, study_name: str, heartbeat_interval: int, grace_period: 
         storage = _create_rdb(url, engine_kwargs, heartbeat_interval, grace_period, callback)
     except sqlalchemy.exc.NoSuchModuleError:
         hint = " (write postgresql://, not postgres://)" if parsed.drivername == "postgres" else ""
-        raise StorageError(f"storage {mask_password(url)!r}: SQLAlchemy has no dialect {parsed.drivername!r}{hint}") from None
+        raise StorageError(f"storage {redact(url)!r}: SQLAlchemy has no dialect {parsed.drivername!r}{hint}") from None
     except ImportError:  # Optuna turns a missing driver into "Failed to import DB access module"
         raise StorageError(
-            f"storage {mask_password(url)!r} needs a database driver that is not installed (PostgreSQL: pip install "
+            f"storage {redact(url)!r} needs a database driver that is not installed (PostgreSQL: pip install "
             "psycopg2-binary and write postgresql+psycopg2://; MySQL: pip install pymysql and write mysql+pymysql://)"
         ) from None
     except sqlalchemy.exc.SQLAlchemyError as err:
         reason = str(getattr(err, "orig", None) or err).strip().splitlines()[0]
         raise StorageError(
-            f"cannot open storage {mask_password(url)}: {reason}. Check that the database server is running and "
+            f"cannot open storage {redact(url)}: {redact(reason)}. Check that the database server is running and "
             "reachable, and that the URL's user, password and database name are right."
         ) from None
     return StudyStorage(url, storage, _rdb_lock(storage, backend, study_name, url), heartbeat_interval)
@@ -215,7 +241,7 @@ def _rdb_lock(storage: RDBStorage, backend: str, study_name: str, url: str) -> C
         return lambda: _sql_lock(storage, "SELECT GET_LOCK(:name, -1)", "SELECT RELEASE_LOCK(:name)", {"name": name})
     logger.warning(
         "storage %s (%s) has no lock this package knows: workers may together run a few more than n_trials trials",
-        mask_password(url),
+        redact(url),
         backend,
     )
     return contextlib.nullcontext

@@ -26,6 +26,7 @@ import optuna
 from optuna.storages import RetryHeartbeatStaleTrialCallback, fail_stale_trials
 from optuna.trial import FrozenTrial, TrialState
 
+from sb3_td3x.common.redaction import redact
 from sb3_td3x.sweeps.errors import SweepError
 from sb3_td3x.sweeps.objective import RESUMABLE, TrialObjective, TrialResult
 from sb3_td3x.sweeps.spec import SweepSpec
@@ -72,11 +73,12 @@ def open_study(spec: SweepSpec, study_storage: StudyStorage, study_name: str, fi
             f"but {spec.source} says direction: {spec.direction}; use another --study-name"
         )
     space = {param.path: repr(param.distribution) for param in spec.params}
+    fixed_overrides = redact(fixed_overrides)  # the study's records hold no secret
     recorded = study.user_attrs.get("search_space")
     if recorded is None:
         study.set_user_attr("search_space", space)
         study.set_user_attr("metric", spec.metric)
-        study.set_user_attr("sweep_file", str(spec.source))
+        study.set_user_attr("sweep_file", redact(str(spec.source)))
         study.set_user_attr("overrides", fixed_overrides)
     elif recorded != space or study.user_attrs.get("overrides") != fixed_overrides:
         logger.warning(
@@ -120,7 +122,7 @@ def claim_trial(study: optuna.Study, spec: SweepSpec, study_storage: StudyStorag
 
 def tell(study: optuna.Study, trial: optuna.Trial, result: TrialResult) -> None:
     if result.reason is not None:
-        trial.set_user_attr("fail_reason" if result.state == TrialState.FAIL else "prune_reason", result.reason)
+        trial.set_user_attr("fail_reason" if result.state == TrialState.FAIL else "prune_reason", redact(result.reason))
     if result.state == TrialState.COMPLETE:
         study.tell(trial, result.value)
         logger.info("trial %d finished: %s = %.3f", trial.number, study.user_attrs.get("metric", "value"), result.value)

@@ -18,7 +18,8 @@ from sb3_td3x.experiment.callbacks import PeriodicEvaluation
 from sb3_td3x.experiment.envs import make_eval_env, make_train_env
 from sb3_td3x.experiment.errors import ConfigError
 from sb3_td3x.experiment.loggers import build_logger, wandb_mode
-from sb3_td3x.experiment.schemas import CONF_DIR, REDACTED, check_config, compose_config, public_config
+from sb3_td3x.common.redaction import MASK
+from sb3_td3x.experiment.schemas import CONF_DIR, check_config, compose_config, public_config
 
 
 def options(group: str) -> list[str]:
@@ -197,7 +198,7 @@ def test_out_of_range_values_fail_the_check_naming_the_field(override, field):
 def test_the_saved_config_has_no_credentials():
     cfg = compose_config(["+env.kwargs.api_key=hunter2", "logger=wandb"])
     saved = public_config(cfg)
-    assert saved["env"]["kwargs"]["api_key"] == REDACTED
+    assert saved["env"]["kwargs"]["api_key"] == MASK
     assert "hunter2" not in OmegaConf.to_yaml(OmegaConf.create(saved))
 
 

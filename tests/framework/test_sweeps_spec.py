@@ -19,7 +19,7 @@ from sb3_td3x.sweeps.errors import SweepSpecError
 from sb3_td3x.sweeps.launch import load_launcher
 from sb3_td3x.sweeps.objective import DEFAULT_CONFIG_DIR, TrialObjective, check_composes, compose_config
 from sb3_td3x.sweeps.spec import load_sweep, override_value, parse_param
-from sb3_td3x.sweeps.storage import StudyStorage, mask_password, open_storage
+from sb3_td3x.sweeps.storage import StudyStorage, open_storage
 from sb3_td3x.sweeps.worker import budget_used, claim_trial, open_study, run_worker
 
 REPO = Path(__file__).resolve().parents[2]
@@ -168,8 +168,8 @@ def test_an_unreachable_database_gives_one_clear_error(tmp_path, capsys):
 
 
 def test_passwords_are_masked_in_what_is_shown():
-    assert mask_password("postgresql://u:pw@h:5432/db") == "postgresql://u:***@h:5432/db"
-    assert mask_password("sqlite:///a.db") == "sqlite:///a.db"
+    assert StudyStorage("postgresql://u:pw@h:5432/db", None, None, 60).display_url == "postgresql://u:***@h:5432/db"
+    assert StudyStorage("sqlite:///a.db", None, None, 60).display_url == "sqlite:///a.db"
 
 
 def _objective(trial: optuna.Trial) -> float:

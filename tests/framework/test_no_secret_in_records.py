@@ -1,0 +1,196 @@
+"""No secret in any record: a database password and a W&B key given to a sweep and to ``run.py`` appear in no file of
+their output folders, no study attribute, no log line and no console output.
+
+The sweep runs on the PostgreSQL server of ``.ci/postgres.sh`` (``SB3_TD3X_TEST_PG_URL``), as its second user
+``td3x_secret``, whose password holds the characters a URL must encode. Without a server the sweep test is skipped
+(it fails in CI, where the server must be there). Issue 19.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import uuid
+from pathlib import Path
+from urllib.parse import quote, quote_plus
+
+import optuna
+import pytest
+import yaml
+from omegaconf import OmegaConf
+
+from sb3_td3x.common.redaction import MASK, find_secrets
+
+REPO = Path(__file__).resolve().parents[2]
+SMOKE = REPO / "sweeps" / "pendulum_smoke.yaml"
+# Created by .ci/postgres.sh beside the tests' own user.
+SECRET_USER = "td3x_secret"
+PASSWORD = "p@ss:w/rd%"
+WANDB_KEY = "d1e2a3d4b5e6e7f8a9b0-secret-wandb-key-01"
+TINY = ["total_timesteps=300", "algo.learning_starts=100", "algo.buffer_size=1000", "eval.freq=300", "eval.n_episodes=1"]
+
+
+def forms(secret: str) -> list[str]:
+    """The secret as written and as a URL encodes it."""
+    return sorted({secret, quote(secret, safe=""), quote_plus(secret)})
+
+
+def assert_nowhere(secrets: list[str], folders: list[Path], outputs: dict[str, str]) -> int:
+    """No form of any secret in any file under ``folders`` nor in ``outputs`` (name: text); returns the number of
+    files read. A failure lists every place that holds one."""
+    needles = [form for secret in secrets for form in forms(secret)]
+    leaks = [f"{name} holds {needle!r}" for name, text in outputs.items() for needle in needles if needle in text]
+    files = sorted({path for folder in folders for path in folder.rglob("*") if path.is_file()})
+    for path in files:
+        data = path.read_bytes()
+        leaks += [f"{path} holds {needle!r}" for needle in needles if needle.encode() in data]
+    assert not leaks, f"{len(leaks)} leaks:\n" + "\n".join(leaks)
+    return len(files)
+
+
+def run(command: list[str], env: dict[str, str], timeout: float = 300) -> subprocess.CompletedProcess:
+    done = subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True, timeout=timeout, check=False)
+    assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-3000:]
+    assert "Traceback" not in done.stderr, done.stderr[-3000:]
+    return done
+
+
+def test_run_py_with_a_wandb_key_writes_it_nowhere(tmp_path):
+    """``WANDB_API_KEY`` in the environment and on the command line (``+hydra.job.env_set``, a usual way to hand a
+    job its key), ``logger=wandb`` offline: the key is in no file of the run folder, of Hydra's records, of W&B's
+    offline run or of W&B's cache in $HOME, and not in the console output."""
+    run_dir, home = tmp_path / "run", tmp_path / "home"
+    home.mkdir()
+    env = {k: v for k, v in os.environ.items() if not k.startswith("WANDB_")}
+    env.update(HOME=str(home), WANDB_API_KEY=WANDB_KEY, MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"))
+    args = ["debug=smoke", "env=pendulum", *TINY, "progress_bar=false", "logger=wandb", "logger.wandb.mode=offline"]
+    args += [f"+hydra.job.env_set.WANDB_API_KEY={WANDB_KEY}", f"run_dir={run_dir}"]
+    done = run([sys.executable, "run.py", *args], env)
+
+    n_files = assert_nowhere([WANDB_KEY], [tmp_path], {"stdout": done.stdout, "stderr": done.stderr})
+    assert n_files > 10 and list(run_dir.glob("wandb/offline-run-*/run-*.wandb")) and (run_dir / "tb").is_dir()
+    # The records say a key was there, masked, and still read as what they were.
+    session = json.loads((run_dir / "provenance.jsonl").read_text().splitlines()[0])
+    assert f"+hydra.job.env_set.WANDB_API_KEY={MASK}" in session["command"] and "logger=wandb" in session["command"]
+    assert json.loads((run_dir / "summary.json").read_text())["provenance"]["command"] == session["command"]
+    assert yaml.safe_load((run_dir / ".hydra" / "hydra.yaml").read_text())["hydra"]["job"]["env_set"] == {
+        "WANDB_API_KEY": MASK
+    }
+    assert yaml.safe_load((run_dir / "config.yaml").read_text())["total_timesteps"] == 300
+    # The publishing check finds nothing left to mask in the records it publishes.
+    for name in ("config.yaml", "summary.json", "provenance.jsonl", "evaluations.csv"):
+        assert find_secrets((run_dir / name).read_text()) == [], name
+
+
+@pytest.fixture
+def pg_url() -> str:
+    url = os.environ.get("SB3_TD3X_TEST_PG_URL")
+    if url:
+        return url
+    how = 'export SB3_TD3X_TEST_PG_URL="$(bash .ci/postgres.sh)"'
+    if os.environ.get("CI", "").lower() == "true":
+        pytest.fail(f"SB3_TD3X_TEST_PG_URL is not set in CI; .ci/run must start PostgreSQL first: {how}")
+    pytest.skip(f"no PostgreSQL server: SB3_TD3X_TEST_PG_URL is not set (start one with {how})")
+
+
+def secret_user_url(pg_url: str) -> str:
+    """The server of ``pg_url`` as its user ``td3x_secret``, the password URL-encoded; skipped (failed in CI) when
+    the server has no such user, i.e. it was not started by this checkout's ``.ci/postgres.sh``."""
+    from sqlalchemy import create_engine, text
+    from sqlalchemy.engine import make_url
+
+    base = make_url(pg_url)
+    url = base.set(drivername="postgresql+psycopg2", username=SECRET_USER, password=PASSWORD, database=SECRET_USER)
+    try:
+        engine = create_engine(url, connect_args={"connect_timeout": 10})
+        with engine.connect() as connection:
+            connection.execute(text("SELECT 1"))
+        engine.dispose()
+    except Exception as err:  # noqa: BLE001
+        reason = (
+            f"the PostgreSQL server at {base.host}:{base.port} has no user {SECRET_USER} with the test's password "
+            f"({type(err).__name__}); run .ci/postgres.sh again, which creates it"
+        )
+        if os.environ.get("CI", "").lower() == "true":
+            pytest.fail(reason)
+        pytest.skip(reason)
+    encoded = url.render_as_string(hide_password=False)
+    assert quote(PASSWORD, safe="") in encoded  # p%40ss%3Aw%2Frd%25: the URL a user writes
+    return encoded
+
+
+def test_a_sweep_on_postgresql_writes_its_password_nowhere(pg_url, tmp_path):
+    """A sweep with the password in ``--storage`` (two trials, TensorBoard on), then ``--report`` on the same study
+    with the URL written without its password and the password in ``PGPASSWORD``: no trial folder, study file,
+    study or trial attribute, log line or console output holds the password; the dashboard line shows it masked
+    and says how to give it."""
+    url = secret_user_url(pg_url)
+    study_name = f"test-secrets-{uuid.uuid4().hex[:8]}"
+    out = tmp_path / "sweeps"
+    sweep = OmegaConf.load(SMOKE)
+    sweep.pruner = {"_target_": "optuna.pruners.NopPruner"}  # both trials run to their end and write every record
+    sweep_file = tmp_path / "sweep.yaml"
+    OmegaConf.save(sweep, sweep_file)
+    env = {**os.environ, "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    env.pop("PGPASSWORD", None)
+    common = ["--study-name", study_name, "--output-dir", str(out)]
+    overrides = [*TINY, "logger=tensorboard"]
+    sweep_run = run([sys.executable, "-m", "sb3_td3x.sweeps", str(sweep_file), *overrides, "--storage", url,
+                     *common, "--n-trials", "2"], env)  # fmt: skip
+    first_summary = (out / study_name / "summary.txt").read_text()
+    # The same study again, the password from the environment: the worker connects from its command line alone.
+    without_password = url.replace(":" + quote(PASSWORD, safe=""), "")
+    assert "@" in without_password and PASSWORD not in without_password
+    report = run([sys.executable, "-m", "sb3_td3x.sweeps", str(sweep_file), *overrides,
+                  "--storage", without_password, *common, "--report"], {**env, "PGPASSWORD": PASSWORD})  # fmt: skip
+
+    storage = optuna.storages.RDBStorage(url)
+    try:
+        study = optuna.load_study(study_name=study_name, storage=storage)
+        trials = study.get_trials()
+        attributes = json.dumps([study.user_attrs] + [t.user_attrs for t in trials] + [t.system_attrs for t in trials])
+        assert [t.state for t in trials] == [optuna.trial.TrialState.COMPLETE] * 2
+        outputs = {"sweep's stdout": sweep_run.stdout, "sweep's stderr": sweep_run.stderr,
+                   "--report's stdout": report.stdout, "--report's stderr": report.stderr,
+                   "summary.txt of the sweep": first_summary, "study and trial attributes": attributes}  # fmt: skip
+        n_files = assert_nowhere([PASSWORD], [tmp_path], outputs)
+        assert n_files > 20
+        # The summary the sweep wrote (and printed): the dashboard command with the password masked, and how to give it
+        assert f"dashboard: optuna-dashboard postgresql+psycopg2://{SECRET_USER}:{MASK}@" in first_summary
+        assert f"PGPASSWORD=<password> optuna-dashboard postgresql+psycopg2://{SECRET_USER}@" in first_summary
+        assert first_summary in sweep_run.stdout
+        # rewritten by --report, whose URL had no password to mask
+        summary = (out / study_name / "summary.txt").read_text()
+        assert f"dashboard: optuna-dashboard {without_password}\n" in summary and "2 trials: 2 COMPLETE" in summary
+        for trial in trials:  # every trial's records: the command is kept, its password masked
+            run_dir = Path(trial.user_attrs["run_dir"])
+            assert (run_dir / "tb").is_dir()
+            for name in ("provenance.jsonl", "summary.json"):
+                text = (run_dir / name).read_text()
+                assert f"--storage postgresql+psycopg2://{SECRET_USER}:{MASK}@" in text, name
+                assert find_secrets(text) == [], name
+        assert (out / study_name / "trials.csv").is_file() and (out / study_name / "best_overrides.txt").is_file()
+    finally:
+        optuna.delete_study(study_name=study_name, storage=storage)
+        storage.engine.dispose()
+
+
+def test_publish_refuses_a_record_that_holds_a_secret(tmp_path):
+    """``scripts/publish_results.sh`` copies nothing while a record looks like it holds a secret, and says which."""
+    seed = tmp_path / "runs" / "pendulum" / "td3" / "seed0"
+    seed.mkdir(parents=True)
+    (seed / "evaluations.csv").write_text("timesteps,mean_return\n300,-1200.0\n")
+    (seed / "provenance.jsonl").write_text(json.dumps({"command": "run.py +hydra.job.env_set.WANDB_API_KEY=abc123"}) + "\n")
+    docs = tmp_path / "docs"
+    out = subprocess.run(
+        ["bash", str(REPO / "scripts" / "publish_results.sh"), str(tmp_path / "runs")],
+        env={"PATH": f"{Path(sys.executable).parent}:/usr/bin:/bin", "PYTHON": sys.executable,
+             "RESULTS_DOCS_DIR": str(docs), "RESULTS_PAGE": ""},  # fmt: skip
+        capture_output=True, text=True, timeout=120, cwd=REPO,
+    )  # fmt: skip
+    assert out.returncode == 2, out.stdout + out.stderr
+    assert f"{seed / 'provenance.jsonl'}:1: looks like a secret" in out.stderr and "not publishing" in out.stderr
+    assert "abc123" not in out.stderr + out.stdout and "Traceback" not in out.stderr
+    assert not docs.exists()
