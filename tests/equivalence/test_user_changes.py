@@ -110,6 +110,8 @@ def _subclass_overriding(hook: str) -> type[TD3X]:
         loss.backward()
         th.nn.utils.clip_grad_norm_(self.critic.parameters(), 0.05)
         self.critic.optimizer.step()
+        with th.no_grad():  # and a decay of the weights after the step
+            th._foreach_mul_(list(self.critic.parameters()), 0.99)
 
     def should_update_actor(self, n_updates):
         return n_updates % 3 == 0
@@ -230,11 +232,10 @@ def build(case: Case, **overrides: Any) -> TD3X:
     kwargs = {"policy": "MlpPolicy", **case.kwargs, **overrides}
     policy = kwargs.pop("policy")
     policy_kwargs = {"net_arch": NET, **kwargs.pop("policy_kwargs", {})}
+    kwargs = {"learning_starts": LEARNING_STARTS, "batch_size": 64, **kwargs}
     model = case.cls(
         policy,
         "Pendulum-v1",
-        learning_starts=LEARNING_STARTS,
-        batch_size=64,
         policy_kwargs=policy_kwargs,
         action_noise=NormalActionNoise(np.zeros(1), 0.1 * np.ones(1)),
         seed=0,
@@ -249,6 +250,21 @@ def train(case: Case, **overrides: Any) -> TD3X:
     model = build(case, **overrides)
     try:
         model.learn(STEPS)
+    finally:
+        if case.teardown is not None:
+            case.teardown()
+    return model
+
+
+def train_updates(case: Case, updates: int = 100, **overrides: Any) -> TD3X:
+    """``updates`` gradient steps on a buffer filled with random actions: the update alone, without the environment
+    loop that turns float rounding into another trajectory (for paths that do not round as eager autograd does)."""
+    model = build(case, learning_starts=STEPS, **overrides)
+    try:
+        model.learn(STEPS)  # collection only
+        np.random.seed(0)
+        th.manual_seed(0)
+        model.train(gradient_steps=updates, batch_size=64)
     finally:
         if case.teardown is not None:
             case.teardown()
@@ -332,23 +348,29 @@ def test_the_stock_setups_take_the_fast_paths_and_match_the_hooks(name):
 def test_compiled_update_trains_what_the_eager_hooks_train(name, path):
     case = {**CASES, **STOCK}[name]
     with pytest.warns(UserWarning) if path == "compiled_eager_backward" else _no_context():
-        compiled = train(case, compile_update=True)
-    reference = train(case, mlp_update=False)
+        compiled = train_updates(case, updates=20, compile_update=True)
+    reference = train_updates(case, updates=20, mlp_update=False)
     assert compiled.update_path == path
-    assert_same_weights(compiled, reference, rtol=1e-3, atol=1e-4)
+    # Inductor's kernels and the functional Adam round differently from eager's fused Adam (3e-8 after one step), and
+    # Adam's normalisation magnifies that on near-zero gradients, about 1e-5 more per step: 1e-4 after 20 steps
+    # (critic-forward-subclass: 3e-8, 1.2e-5, 1.3e-4, 2.6e-3 after 1, 2, 20, 100), far below a dropped change's.
+    assert_same_weights(compiled, reference, rtol=1e-3, atol=5e-4)
+    if name != "stock-defaults":
+        dropped = train_updates(Case(), updates=20, mlp_update=False)
+        assert max_difference(compiled, reference) < 0.1 * max_difference(dropped, reference)
 
 
 @pytest.mark.parametrize("name", ["stock-defaults", "critic-forward-subclass", "hook-set-on-instance"])
 def test_bf16_update_trains_what_the_bf16_hooks_train(name):
     case = {**CASES, **STOCK}[name]
     with pytest.warns(UserWarning) if _bf16_warns() else _no_context():
-        fast = train(case, bf16=True)
-        reference = train(case, bf16=True, mlp_update=False)
+        fast = train_updates(case, bf16=True)
+        reference = train_updates(case, bf16=True, mlp_update=False)
     assert reference.update_path == "autograd"
     if name == "stock-defaults":
         assert fast.update_path == "mlp"
         # bf16 products: MlpUpdate casts operands where autocast casts per operation; bf16 rounding (8 bits).
-        assert max_difference(fast, reference) < 0.05
+        assert max_difference(fast, reference) < 0.02
     else:
         assert fast.update_path == "autograd"
         assert_same_weights(fast, reference, rtol=0, atol=0)
