@@ -32,9 +32,14 @@ def run_py(*args: str, **kwargs) -> subprocess.Popen:
     )
 
 
-def curve(run_dir: Path) -> list[tuple[int, float, float]]:
+def curve(run_dir: Path) -> list[tuple[int, float, float, float, float]]:
+    """Each evaluation's step, return, its std, and the critic's value estimate against the true value."""
     with open(run_dir / "evaluations.csv") as file:
-        return [(int(row["timesteps"]), float(row["mean_return"]), float(row["std_return"])) for row in csv.DictReader(file)]
+        return [
+            (int(row["timesteps"]), float(row["mean_return"]), float(row["std_return"]), float(row["value_estimate"]),
+             float(row["true_value"]))
+            for row in csv.DictReader(file)
+        ]
 
 
 def policy_weights(run_dir: Path) -> dict[str, torch.Tensor]:
@@ -66,7 +71,7 @@ def test_sigterm_then_resume_finishes_the_same_run(tmp_path):
 
     assert json.loads((stopped / "checkpoints" / "last" / META_FILE).read_text())["num_timesteps"] == 2000
     assert curve(stopped) == curve(reference)
-    assert [step for step, _, _ in curve(stopped)] == [500, 1000, 1500, 2000]
+    assert [row[0] for row in curve(stopped)] == [500, 1000, 1500, 2000]
     reference_weights, resumed_weights = policy_weights(reference), policy_weights(stopped)
     for name, tensor in reference_weights.items():
         torch.testing.assert_close(resumed_weights[name], tensor, rtol=0, atol=0, msg=name)

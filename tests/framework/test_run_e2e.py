@@ -114,6 +114,8 @@ def test_run_py_writes_a_complete_run_folder(tmp_path):
     tags = events.Tags()["scalars"]
     assert {"eval/mean_reward", "train/critic_loss", "train/actor_loss", "rollout/ep_rew_mean"} <= set(tags)
     assert [event.step for event in events.Scalars("eval/mean_reward")] == [500, 1000, 1500, 2000]
+    # the critic's value estimate against the true value (eval.value_bias, on by default)
+    assert [event.step for event in events.Scalars("eval/overestimation")] == [500, 1000, 1500, 2000]
 
     # W&B offline run: config and metrics, including every evaluation
     (wandb_file,) = glob.glob(str(run_dir / "wandb" / "offline-run-*" / "run-*.wandb"))
@@ -129,6 +131,8 @@ def test_run_py_writes_a_complete_run_folder(tmp_path):
     eval_rows = [row for row in history_rows if "eval/mean_reward" in row]
     assert [row["global_step"] for row in eval_rows] == [500, 1000, 1500, 2000]
     assert [row["eval/mean_reward"] for row in eval_rows] == pytest.approx([float(row["mean_return"]) for row in rows])
+    for key in ("value_estimate", "true_value", "overestimation", "normalized_bias", "value_states"):
+        assert [row[f"eval/{key}"] for row in eval_rows] == pytest.approx([float(row[key]) for row in rows]), key
     assert any("train/critic_loss" in row for row in history_rows)
 
     # the composed config is saved, and no credential landed anywhere
