@@ -128,7 +128,8 @@ def value_row(name: str, values: pd.DataFrame, env_id: str, algo: str, runs: Pat
             return f"{value:.{digits}f} (one seed)"
         return f"{value:.{digits}f} ({low:.{digits}f} to {high:.{digits}f})"
 
-    per_seed = ", ".join(f"{seed}: {value}" for seed, value in zip(str(r.seeds).split(", "), str(r.per_seed_overestimation).split(", ")))
+    seeds_of_row, overestimations = str(r.seeds).split(", "), str(r.per_seed_overestimation).split(", ")
+    per_seed = ", ".join(f"{seed}: {value}" for seed, value in zip(seeds_of_row, overestimations))
     return (
         f"| {name} | {progress} | {int(r.timesteps):,} | {r.value_estimate:.1f} | {r.true_value:.1f} "
         f"| {with_ci('overestimation', 1)} | {with_ci('normalized_bias', 3)} | {per_seed} |"

@@ -268,7 +268,7 @@ def main(argv: list[str] | None = None) -> int:
     if not value_table.empty:
         value_table.to_csv(out_dir / VALUE_BIAS_CSV, index=False)
         shown = value_table[["env_id", "algo", "n_runs", "timesteps", *VALUE_METRICS, "per_seed_overestimation"]].copy()
-        shown["normalized_bias"] = shown["normalized_bias"].map(lambda value: f"{value:.3f}")  # a ratio: one decimal is too few
+        shown["normalized_bias"] = shown["normalized_bias"].map(lambda value: f"{value:.3f}")  # a ratio: 3 decimals
         print("\nValue estimate against true value (the critic's overestimation):\n" + to_markdown(shown))
         written += [out_dir / VALUE_BIAS_CSV, *plot_value_curves(value_curves, args.stat, out_dir)]
     print(f"\nWrote {', '.join(map(str, written))}")
