@@ -21,7 +21,9 @@ import pytest
 import yaml
 from omegaconf import OmegaConf
 
-from sb3_td3x.common.redaction import MASK, find_secrets
+from sb3_td3x.common.redaction import MASK, find_secrets, redact
+from sb3_td3x.sweeps.cli import _password_to_environment
+from sb3_td3x.sweeps.storage import PASSWORD_ENV, open_storage
 
 REPO = Path(__file__).resolve().parents[2]
 SMOKE = REPO / "sweeps" / "pendulum_smoke.yaml"
@@ -109,9 +111,10 @@ def secret_user_url(pg_url: str) -> str:
             connection.execute(text("SELECT 1"))
         engine.dispose()
     except Exception as err:  # noqa: BLE001
+        first_line = (str(getattr(err, "orig", None) or err).strip().splitlines() or [""])[0]
         reason = (
-            f"the PostgreSQL server at {base.host}:{base.port} has no user {SECRET_USER} with the test's password "
-            f"({type(err).__name__}); run .ci/postgres.sh again, which creates it"
+            f"cannot connect to {base.host}:{base.port} as {SECRET_USER} ({redact(first_line)}); if the server is up, "
+            "run .ci/postgres.sh again: it creates that user"
         )
         if os.environ.get("CI", "").lower() == "true":
             pytest.fail(reason)
@@ -123,7 +126,7 @@ def secret_user_url(pg_url: str) -> str:
 
 def test_a_sweep_on_postgresql_writes_its_password_nowhere(pg_url, tmp_path):
     """A sweep with the password in ``--storage`` (two trials, TensorBoard on), then ``--report`` on the same study
-    with the URL written without its password and the password in ``PGPASSWORD``: no trial folder, study file,
+    with the URL written without its password and the password in ``SB3_TD3X_STORAGE_PASSWORD``: no trial folder, study file,
     study or trial attribute, log line or console output holds the password; the dashboard line shows it masked
     and says how to give it."""
     url = secret_user_url(pg_url)
@@ -135,16 +138,18 @@ def test_a_sweep_on_postgresql_writes_its_password_nowhere(pg_url, tmp_path):
     OmegaConf.save(sweep, sweep_file)
     env = {**os.environ, "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")}
     env.pop("PGPASSWORD", None)
+    env.pop(PASSWORD_ENV, None)
     common = ["--study-name", study_name, "--output-dir", str(out)]
     overrides = [*TINY, "logger=tensorboard"]
     sweep_run = run([sys.executable, "-m", "sb3_td3x.sweeps", str(sweep_file), *overrides, "--storage", url,
                      *common, "--n-trials", "2"], env)  # fmt: skip
     first_summary = (out / study_name / "summary.txt").read_text()
-    # The same study again, the password from the environment: the worker connects from its command line alone.
+    # The same study again, the password from the environment: a worker connects from its command line and
+    # environment alone, never from the records.
     without_password = url.replace(":" + quote(PASSWORD, safe=""), "")
     assert "@" in without_password and PASSWORD not in without_password
     report = run([sys.executable, "-m", "sb3_td3x.sweeps", str(sweep_file), *overrides,
-                  "--storage", without_password, *common, "--report"], {**env, "PGPASSWORD": PASSWORD})  # fmt: skip
+                  "--storage", without_password, *common, "--report"], {**env, PASSWORD_ENV: PASSWORD})  # fmt: skip
 
     storage = optuna.storages.RDBStorage(url)
     try:
@@ -162,8 +167,7 @@ def test_a_sweep_on_postgresql_writes_its_password_nowhere(pg_url, tmp_path):
         assert f"PGPASSWORD=<password> optuna-dashboard postgresql+psycopg2://{SECRET_USER}@" in first_summary
         assert first_summary in sweep_run.stdout
         # rewritten by --report, whose URL had no password to mask
-        summary = (out / study_name / "summary.txt").read_text()
-        assert f"dashboard: optuna-dashboard {without_password}\n" in summary and "2 trials: 2 COMPLETE" in summary
+        assert (out / study_name / "summary.txt").read_text() == first_summary  # rewritten by --report, the same
         for trial in trials:  # every trial's records: the command is kept, its password masked
             run_dir = Path(trial.user_attrs["run_dir"])
             assert (run_dir / "tb").is_dir()
@@ -175,6 +179,28 @@ def test_a_sweep_on_postgresql_writes_its_password_nowhere(pg_url, tmp_path):
     finally:
         optuna.delete_study(study_name=study_name, storage=storage)
         storage.engine.dispose()
+
+
+def test_postgresqls_own_pgpassword_works_with_a_url_without_password(pg_url, monkeypatch):
+    """What docs/sweeps.md advises: the URL without its password, the password in PGPASSWORD (read by libpq)."""
+    url = secret_user_url(pg_url).replace(":" + quote(PASSWORD, safe=""), "")
+    monkeypatch.delenv(PASSWORD_ENV, raising=False)
+    monkeypatch.setenv("PGPASSWORD", PASSWORD)
+    study_storage = open_storage(url, "test-pgpassword")
+    assert optuna.get_all_study_names(study_storage.storage) is not None
+    assert study_storage.password_hint() is None and study_storage.dashboard_command() == f"optuna-dashboard {url}"
+    study_storage.storage.engine.dispose()
+
+
+def test_launcher_jobs_get_the_password_through_their_environment(monkeypatch):
+    """``--launcher`` pickles the workers' command line into its job folder: the password leaves the URL for
+    ``SB3_TD3X_STORAGE_PASSWORD``, which the jobs inherit."""
+    monkeypatch.setenv(PASSWORD_ENV, "placeholder")  # restored after the test
+    url = f"postgresql+psycopg2://td3x:{quote(PASSWORD, safe='')}@db-host:5432/td3x"
+    assert _password_to_environment(url) == "postgresql+psycopg2://td3x@db-host:5432/td3x"
+    assert os.environ[PASSWORD_ENV] == PASSWORD
+    for unchanged in ("sqlite:///runs/x/optuna.db", "journal:runs/x.log", "postgresql://td3x@db-host/td3x"):
+        assert _password_to_environment(unchanged) == unchanged
 
 
 def test_publish_refuses_a_record_that_holds_a_secret(tmp_path):
