@@ -10,6 +10,7 @@ W&B as config or command line, goes through :func:`~sb3_td3x.common.redaction.re
 from __future__ import annotations
 
 import contextlib
+import logging
 import netrc
 import os
 import sys
@@ -19,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from omegaconf import DictConfig
-from stable_baselines3.common.logger import HParam, KVWriter, Logger, TensorBoardOutputFormat
+from stable_baselines3.common.logger import HParam, KVWriter, Logger, SeqWriter, TensorBoardOutputFormat
 
 from sb3_td3x.common.redaction import redact
 
@@ -122,9 +123,24 @@ def _redacted_argv() -> Iterator[None]:
         sys.argv = saved
 
 
+class PythonLogOutput(SeqWriter):
+    """SB3's text messages (``logger.info(...)``, e.g. TD3X's ``update: ...`` line) as log records of the run's
+    Python logger: on the console and in Hydra's log file, with the run's other lines."""
+
+    def __init__(self, name: str = "sb3_td3x") -> None:
+        self.log = logging.getLogger(name)
+
+    def write_sequence(self, sequence: list[str]) -> None:
+        self.log.info("".join(sequence))
+
+    def close(self) -> None:
+        pass
+
+
 def build_logger(logger_cfg: DictConfig, run_dir: Path, wandb_run: Any | None) -> Logger:
-    """SB3 ``Logger`` writing TensorBoard events to ``run_dir/tb`` and/or to W&B."""
-    output_formats: list[KVWriter] = []
+    """SB3 ``Logger`` writing TensorBoard events to ``run_dir/tb`` and/or to W&B, and its text messages to the
+    Python log."""
+    output_formats: list[KVWriter | SeqWriter] = [PythonLogOutput()]
     if logger_cfg.tensorboard:
         output_formats.append(RedactedTensorBoardOutputFormat(str(run_dir / "tb")))
     if wandb_run is not None:

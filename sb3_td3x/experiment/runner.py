@@ -159,6 +159,10 @@ def run_experiment(cfg: DictConfig, report: Callable[[int, float], None] | None 
             "final_mean_return": final["mean_return"],
             "final_std_return": final["std_return"],
             "best_mean_return": evaluation.best_mean_return,
+            # How TD3X's update ran and why (sb3_td3x.td3x.update_paths.choose); None for SB3's TD3
+            "update_path": getattr(model, "update_path", None),
+            "update_reason": getattr(model, "update_reason", None),
+            "exploration_path": getattr(model, "exploration_path", None),
             "wall_time_s_this_session": time.time() - started,
             "provenance": provenance(),
         }

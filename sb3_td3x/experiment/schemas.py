@@ -3,13 +3,15 @@
 The dataclasses are registered in Hydra's ``ConfigStore`` when this module is imported; every YAML in
 ``conf/`` extends one of them (``defaults: [base_algo, _self_]``), so a misspelt key or a value of the
 wrong type fails while Hydra composes the config, before anything is built. :func:`check_config` then
-checks ranges and names (``algo.tau`` in (0, 1], a registered gymnasium id, ...) and raises one
-:class:`~sb3_td3x.experiment.errors.ConfigError` listing every problem.
+checks ranges and names (``algo.tau`` in [0, 1] as TD3X's constructor checks it, a registered gymnasium id,
+...) and raises one :class:`~sb3_td3x.experiment.errors.ConfigError` listing every problem.
 """
 
 from __future__ import annotations
 
 import difflib
+import math
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -22,6 +24,23 @@ from omegaconf import II, MISSING, DictConfig, OmegaConf
 
 from sb3_td3x.common.redaction import redact
 from sb3_td3x.experiment.errors import ConfigError
+from sb3_td3x.td3x.td3x import TD3X
+
+# AlgoConfig fields checked by TD3X's constructor itself (TD3X.hyperparameter_problems), not again here.
+CONSTRUCTOR_CHECKED = (
+    "learning_rate",
+    "critic_learning_rate",
+    "buffer_size",
+    "learning_starts",
+    "batch_size",
+    "tau",
+    "gamma",
+    "gradient_steps",
+    "n_steps",
+    "policy_delay",
+    "target_policy_noise",
+    "target_noise_clip",
+)
 
 # conf/ of a source checkout (run.py's config_path).
 CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
@@ -175,13 +194,44 @@ if not OmegaConf.has_resolver("td3x.if_resume"):
     OmegaConf.register_new_resolver("td3x.if_resume", _if_resume)
 
 
+def _integer_keys() -> set[str]:
+    """The dotted keys of the integer fields of the schemas (``total_timesteps``, ``algo.buffer_size``, ...)."""
+    groups = {"algo": AlgoConfig, "env": EnvConfig, "eval": EvalConfig, "checkpoint": CheckpointConfig,
+              "logger": LoggerConfig, "video": VideoConfig, "": ExperimentConfig}
+    keys = set()
+    for prefix, schema in groups.items():
+        for name, annotation in schema.__annotations__.items():
+            if annotation in ("int", "int | None"):
+                keys.add(f"{prefix}.{name}" if prefix else name)
+    return keys
+
+
+def integer_overrides(overrides: list[str]) -> list[str]:
+    """``overrides`` with a whole float given to an integer field written as an integer: ``total_timesteps=1e6``
+    becomes ``total_timesteps=1000000``, as users type it (Hydra reads ``1e6`` as a float, which an integer field
+    refuses). Anything else is left as it is, for Hydra to parse and check."""
+    keys = _integer_keys()
+    result = []
+    for arg in overrides:
+        match = re.match(r"^([+~]{0,2})([A-Za-z_][\w.]*)=([-+]?[0-9._]*(?:[eE][-+]?[0-9]+)?)$", arg)
+        if match and match.group(2) in keys and match.group(3):
+            try:
+                value = float(match.group(3))
+            except ValueError:
+                value = math.nan
+            if math.isfinite(value) and value.is_integer() and not re.fullmatch(r"[-+]?[0-9_]+", match.group(3)):
+                arg = f"{match.group(1)}{match.group(2)}={int(value)}"
+        result.append(arg)
+    return result
+
+
 def compose_config(overrides: list[str] | None = None, conf_dir: Path = CONF_DIR) -> DictConfig:
     """The config ``python run.py <overrides>`` would run, composed without starting a Hydra app.
 
     ``run_dir`` keeps its default interpolation; set it before :func:`~sb3_td3x.experiment.runner.run_experiment`.
     """
     with initialize_config_dir(config_dir=str(conf_dir), version_base="1.3"):
-        return compose(config_name="config", overrides=list(overrides or []))
+        return compose(config_name="config", overrides=integer_overrides(list(overrides or [])))
 
 
 def check_config(cfg: DictConfig) -> None:
@@ -199,28 +249,14 @@ def check_config(cfg: DictConfig) -> None:
     problems += _device_problems(cfg.device)
 
     algo = cfg.algo
-    need(algo.learning_rate > 0, f"algo.learning_rate={algo.learning_rate} must be > 0")
-    need(
-        algo.critic_learning_rate is None or algo.critic_learning_rate > 0,
-        f"algo.critic_learning_rate={algo.critic_learning_rate} must be > 0 (or null to use algo.learning_rate)",
-    )
-    need(algo.buffer_size >= 1, f"algo.buffer_size={algo.buffer_size} must be >= 1")
-    need(algo.learning_starts >= 0, f"algo.learning_starts={algo.learning_starts} must be >= 0")
-    need(algo.batch_size >= 1, f"algo.batch_size={algo.batch_size} must be >= 1")
-    need(0 < algo.tau <= 1, f"algo.tau={algo.tau} must be in (0, 1] (the paper uses 0.005)")
-    need(0 <= algo.gamma <= 1, f"algo.gamma={algo.gamma} must be in [0, 1] (the paper uses 0.99)")
+    # The constructor's own range checks (TD3X.hyperparameter_problems): one source of truth for both.
+    for name, allowed in TD3X.hyperparameter_problems(**{name: algo[name] for name in CONSTRUCTOR_CHECKED}):
+        problems.append(f"algo.{name}={algo[name]} must be {allowed}")
     need(algo.train_freq >= 1, f"algo.train_freq={algo.train_freq} must be >= 1")
     need(
         algo.train_freq_unit in ("step", "episode"),
         f"algo.train_freq_unit={algo.train_freq_unit!r} must be 'step' or 'episode'",
     )
-    need(
-        algo.gradient_steps >= 1 or algo.gradient_steps == -1, f"algo.gradient_steps={algo.gradient_steps} must be >= 1 or -1"
-    )
-    need(algo.n_steps >= 1, f"algo.n_steps={algo.n_steps} must be >= 1")
-    need(algo.policy_delay >= 1, f"algo.policy_delay={algo.policy_delay} must be >= 1")
-    need(algo.target_policy_noise >= 0, f"algo.target_policy_noise={algo.target_policy_noise} must be >= 0")
-    need(algo.target_noise_clip >= 0, f"algo.target_noise_clip={algo.target_noise_clip} must be >= 0")
     need(algo.exploration_noise >= 0, f"algo.exploration_noise={algo.exploration_noise} must be >= 0")
     need(
         len(algo.net_arch) > 0 and min(algo.net_arch) >= 1,

@@ -47,6 +47,11 @@ def frozen(parameters: list[th.nn.Parameter]) -> Iterator[None]:
             p.requires_grad_(True)
 
 
+class UnsupportedActionSpace(ValueError, AssertionError):
+    """An action space TD3 cannot act in (not a bounded Box). Both a ``ValueError`` and an ``AssertionError``: SB3's
+    algorithms assert on unsupported action spaces, and code written for them catches ``AssertionError``."""
+
+
 class TD3X(OffPolicyAlgorithm):
     """
     Twin Delayed DDPG (TD3), with every step of the algorithm an overridable method.
@@ -128,8 +133,8 @@ class TD3X(OffPolicyAlgorithm):
     :param compile_update: opt-in: ``torch.compile`` the update. With ``mlp_update`` applicable (fp32 or bf16), the
         hand-written gradients of :class:`~sb3_td3x.td3x.update_paths.mlp.MlpUpdate` are compiled (one graph for the
         critics', one for the actor's); otherwise steps 5 to 15 are, with the gradients from ``torch.func`` and
-        Adam's update rule on the optimizers' own states (:class:`~sb3_td3x.td3x.update_paths.compiled.FunctionalCompiledUpdate`).
-        The first steps pay the compilation
+        Adam's update rule on the optimizers' own states
+        (:class:`~sb3_td3x.td3x.update_paths.compiled.FunctionalCompiledUpdate`). The first steps pay the compilation
     :param cuda_graph: opt-in, CUDA only: capture the whole gradient step, sampling included, in CUDA graphs and
         replay them (no kernel-launch or Python overhead per step)
     :param mlp_update: for SB3's ReLU MLP actor and critics with the hooks of steps 5 to 13 as written, compute the
@@ -229,7 +234,7 @@ class TD3X(OffPolicyAlgorithm):
                 device=device,
                 seed=seed,
                 sde_support=False,
-                # Checked by _check_action_space, with a ValueError instead of an assertion.
+                # Checked by _check_action_space: UnsupportedActionSpace, a ValueError and an AssertionError.
                 supported_action_spaces=None,
                 support_multi_env=True,
             )
@@ -272,22 +277,32 @@ class TD3X(OffPolicyAlgorithm):
     @staticmethod
     def _check_action_space(action_space: spaces.Space) -> None:
         if not isinstance(action_space, spaces.Box):
-            raise ValueError(
+            raise UnsupportedActionSpace(
                 f"TD3X needs a continuous action space (gymnasium.spaces.Box), got {action_space!r}. "
                 "For discrete actions use DQN, or wrap the env so that it takes continuous actions."
             )
         if not (np.all(np.isfinite(action_space.low)) and np.all(np.isfinite(action_space.high))):
-            raise ValueError(
+            raise UnsupportedActionSpace(
                 f"TD3X needs a bounded action space, got low={action_space.low}, high={action_space.high}. "
                 "Wrap the env with gymnasium.wrappers.RescaleAction or give the action space finite bounds."
             )
 
-    @staticmethod
-    def _check_hyperparameters(**values: Any) -> None:
+    @classmethod
+    def _check_hyperparameters(cls, **values: Any) -> None:
         """Fail at construction, with a message naming the parameter and its allowed range."""
+        problems = cls.hyperparameter_problems(**values)
+        if problems:
+            name, allowed = problems[0]
+            raise ValueError(f"TD3X: invalid {name}={values[name]!r}; {name} must be {allowed}.")
+
+    @staticmethod
+    def hyperparameter_problems(**values: Any) -> list[tuple[str, str]]:
+        """The constructor's range checks, the one source of truth (the experiment configs use them too): a list of
+        ``(name, what it must be)`` for each invalid value among ``values`` (every checked argument must be given)."""
+        problems: list[tuple[str, str]] = []
 
         def fail(name: str, allowed: str) -> None:
-            raise ValueError(f"TD3X: invalid {name}={values[name]!r}; {name} must be {allowed}.")
+            problems.append((name, allowed))
 
         def is_number(x: Any) -> bool:
             return isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, bool)
@@ -322,6 +337,7 @@ class TD3X(OffPolicyAlgorithm):
         for name in ("target_policy_noise", "target_noise_clip"):
             if not is_number(values[name]) or not (math.isfinite(values[name]) and values[name] >= 0):
                 fail(name, "a finite float >= 0 (use target_policy_smoothing=False to switch smoothing off)")
+        return problems
 
     def _setup_model(self) -> None:
         if self.replay_buffer_class is None and isinstance(self.observation_space, spaces.Box) and self.n_steps == 1:

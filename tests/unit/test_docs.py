@@ -25,29 +25,14 @@ import yaml
 from stable_baselines3.common.type_aliases import ReplayBufferSamples
 
 from sb3_td3x import TD3X
+from sb3_td3x.td3x.hooks import HOOK_NAMES
 
 ROOT = Path(__file__).resolve().parents[2]
 DOCS = ROOT / "docs"
 EXAMPLES = sorted((DOCS / "examples").glob("*.py"))
 
-# The hooks of TD3X (steps 4 to 15): each must be rendered on the API page with its docstring.
-HOOKS = [
-    "sample_batch",
-    "compute_target_q",
-    "target_actions",
-    "target_policy_smoothing_noise",
-    "next_q_values",
-    "clipped_double_q_value",
-    "td_target",
-    "current_q_values",
-    "critic_loss",
-    "optimize_critic",
-    "should_update_actor",
-    "actor_loss",
-    "optimize_actor",
-    "update_actor_target",
-    "update_critic_target",
-]
+# The hooks of TD3X (steps 4 to 15, sb3_td3x.td3x.hooks): each must be rendered on the API page with its docstring.
+HOOKS = list(HOOK_NAMES)
 
 
 class _Page(HTMLParser):
@@ -260,7 +245,7 @@ def load_example(path: Path) -> tuple[ModuleType, type[TD3X]]:
 
 
 def overridden_hooks(cls: type[TD3X]) -> list[str]:
-    return [name for name in HOOKS + ["gradient_step"] if name in vars(cls)]
+    return [name for name in HOOKS if name in vars(cls)]
 
 
 def test_there_are_examples():

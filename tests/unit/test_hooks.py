@@ -302,13 +302,24 @@ def test_separate_critic_learning_rate():
 
 
 def test_a_hook_can_be_overridden():
-    """The point of the hooks: changing one step (here a Huber critic loss) needs one method, not a copy of train()."""
+    """The point of the hooks: changing one step (here a Huber critic loss) needs one method, not a copy of train().
+    The override must run at every gradient step and change what is learned (it would not, if it were dropped)."""
 
     class HuberTD3X(TD3X):
+        calls = 0
+
         def critic_loss(self, current_q, target_q):
+            HuberTD3X.calls += 1
             loss = sum(F.smooth_l1_loss(q, target_q) for q in current_q)
             return loss, {"critic_loss": loss.detach()}
 
-    model = HuberTD3X("MlpPolicy", gym.make("Pendulum-v1"), learning_starts=50, policy_kwargs=dict(net_arch=[16]), seed=0)
-    model.learn(120)
-    assert model._n_updates > 0
+    def trained(cls):
+        model = cls("MlpPolicy", gym.make("Pendulum-v1"), learning_starts=50, policy_kwargs=dict(net_arch=[16]), seed=0)
+        model.learn(120)
+        return model
+
+    huber, plain = trained(HuberTD3X), trained(TD3X)
+    assert huber._n_updates == 70 and HuberTD3X.calls == 70
+    assert huber.update_path == "autograd" and "critic_loss overridden by HuberTD3X" in huber.update_reason
+    difference = max(float((a - b).abs().max()) for a, b in zip(huber.critic.parameters(), plain.critic.parameters()))
+    assert difference > 1e-3

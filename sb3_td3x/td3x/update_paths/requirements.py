@@ -178,4 +178,6 @@ def stock_predict(model: Any) -> list[str]:
 def no_buffers(module: nn.Module) -> list[str]:
     """No buffers (batch-norm running statistics): the hand-written and functional updates do not update them."""
     names = [name for name, _ in module.named_buffers()]
-    return [f"the policy has buffers ({', '.join(names[:3])}{', ...' if len(names) > 3 else ''}: batch norm?)"] if names else []
+    if not names:
+        return []
+    return [f"the policy has buffers ({', '.join(names[:3])}{', ...' if len(names) > 3 else ''}: batch norm?)"]
