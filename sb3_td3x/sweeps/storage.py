@@ -44,6 +44,10 @@ JOURNAL_PREFIX = "journal:"
 #: The password of a storage URL written without one (``postgresql://user@host/db``): it then stays out of the
 #: command line, where ``ps`` shows it, and out of the launcher's job files.
 PASSWORD_ENV = "SB3_TD3X_STORAGE_PASSWORD"
+ENCODE_HINT = (
+    "percent-encode the password's special characters (@ is %40, : is %3A, / is %2F, % is %25; Python: "
+    f"urllib.parse.quote(password, safe='')), or leave it out of the URL and give it in PGPASSWORD or {PASSWORD_ENV}"
+)
 
 
 @dataclass
@@ -124,7 +128,7 @@ def open_storage(
     if "://" not in url:
         raise StorageError(
             f"storage {url!r} is neither a database URL nor a journal file: use sqlite:///path/to/study.db, "
-            "postgresql://user:password@host:5432/dbname, or a journal file such as journal:study.log"
+            "postgresql://user:<password>@host:5432/dbname, or a journal file such as journal:study.log"
         )
     return _open_rdb(url, study_name, heartbeat_interval, grace_period, retry_stale)
 
@@ -135,8 +139,15 @@ def _open_rdb(url: str, study_name: str, heartbeat_interval: int, grace_period: 
 
     try:
         parsed = make_url(url)
-    except sqlalchemy.exc.ArgumentError:
-        raise StorageError(f"storage {redact(url)!r} is not a valid SQLAlchemy URL") from None
+    except (sqlalchemy.exc.ArgumentError, ValueError):  # ValueError: a port that is not a number
+        raise StorageError(
+            f"storage {redact(url)!r} is not a valid SQLAlchemy URL (dialect://user:<password>@host:port/database; "
+            f"{ENCODE_HINT})"
+        ) from None
+    if "@" in (parsed.host or ""):  # the password's own '@' left as it is: the rest of it was read as the host
+        raise StorageError(
+            f"storage {redact(url)!r}: its password holds an '@' as it is, so the URL cannot be read; {ENCODE_HINT}"
+        )
     backend = parsed.get_backend_name()
     if parsed.password is None and backend != "sqlite" and os.environ.get(PASSWORD_ENV):
         parsed = parsed.set(password=os.environ[PASSWORD_ENV])

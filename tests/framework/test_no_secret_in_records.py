@@ -203,6 +203,19 @@ def test_launcher_jobs_get_the_password_through_their_environment(monkeypatch):
         assert _password_to_environment(unchanged) == unchanged
 
 
+@pytest.mark.parametrize("url", ["postgresql://u:p@ss@127.0.0.1:9/db", "postgresql://u:hunter2@127.0.0.1:port/db"])
+def test_a_storage_url_that_cannot_be_read_is_one_clear_line_without_its_password(url, tmp_path, capsys):
+    """A raw '@' in the password (SQLAlchemy would take the rest of it for the host, and the driver's error would
+    show it), a port that is not a number: one line saying how to write the URL, no traceback, no password."""
+    from sb3_td3x.sweeps.cli import main
+
+    code = main([str(SMOKE), "--storage", url, "--output-dir", str(tmp_path)])
+    err = capsys.readouterr().err
+    assert code == 2 and err.startswith("error: storage 'postgresql://u:***@127.0.0.1:") and err.count("\n") == 1, err
+    assert "percent-encode" in err and "SB3_TD3X_STORAGE_PASSWORD" in err
+    assert "p@ss" not in err and "ss@" not in err and "hunter2" not in err and "Traceback" not in err
+
+
 def test_publish_refuses_a_record_that_holds_a_secret(tmp_path):
     """``scripts/publish_results.sh`` copies nothing while a record looks like it holds a secret, and says which."""
     seed = tmp_path / "runs" / "pendulum" / "td3" / "seed0"
