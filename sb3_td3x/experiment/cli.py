@@ -17,7 +17,7 @@ from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from sb3_td3x.common.redaction import redact
+from sb3_td3x.common.redaction import redact, redact_log_records
 from sb3_td3x.experiment.checkpoints import resume_checkpoint
 from sb3_td3x.experiment.errors import ConfigError, TrainingDiverged, TrainingInterrupted
 from sb3_td3x.experiment.runner import CONFIG_FILE, run_experiment
@@ -104,6 +104,7 @@ def main(cfg: DictConfig) -> float:
     In a multirun, a diverged job prints its message and returns NaN, so the other jobs of the sweep go on.
     """
     hydra_cfg = HydraConfig.get()
+    redact_log_records()  # run.py did it in its own process; a multirun job may run in another (joblib)
     redact_hydra_records(hydra_cfg)
     try:
         if cfg.resume is not None:
