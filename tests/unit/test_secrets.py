@@ -152,3 +152,20 @@ def test_the_check_names_the_file_and_line_and_never_shows_the_secret(tmp_path, 
     assert f"{leaky}:2: looks like a secret" in err and "postgresql://u:***@h/db" in err and ENCODED not in err
     assert check_files([str(tmp_path / "missing.json")]) == 2
     assert "cannot read" in capsys.readouterr().err
+
+
+def test_tensorboard_text_and_hyperparameters_are_redacted(tmp_path):
+    from stable_baselines3.common.logger import HParam
+
+    from sb3_td3x.experiment.loggers import RedactedTensorBoardOutputFormat
+
+    output = RedactedTensorBoardOutputFormat(str(tmp_path))
+    values = {
+        "cmd": f"sweeps --storage postgresql://u:{ENCODED}@h/db",
+        "hp": HParam({"api_key": "abc123", "lr": 0.1}, {"m": 0}),
+    }
+    output.write(values, {key: None for key in values}, step=1)
+    output.close()
+    events = b"".join(path.read_bytes() for path in tmp_path.rglob("events.out.tfevents.*"))
+    assert b"postgresql://u:***@h/db" in events and b"lr" in events
+    assert ENCODED.encode() not in events and b"abc123" not in events
