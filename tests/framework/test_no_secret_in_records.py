@@ -9,6 +9,7 @@ The sweep runs on the PostgreSQL server of ``.ci/postgres.sh`` (``SB3_TD3X_TEST_
 from __future__ import annotations
 
 import json
+import logging
 import os
 import subprocess
 import sys
@@ -22,11 +23,10 @@ import yaml
 from omegaconf import OmegaConf
 
 from sb3_td3x.common.redaction import MASK, find_secrets, redact
-from sb3_td3x.sweeps.cli import _password_to_environment
-from sb3_td3x.sweeps.storage import PASSWORD_ENV, open_storage
 
 REPO = Path(__file__).resolve().parents[2]
 SMOKE = REPO / "sweeps" / "pendulum_smoke.yaml"
+PASSWORD_ENV = "SB3_TD3X_STORAGE_PASSWORD"  # sb3_td3x.sweeps.storage.PASSWORD_ENV
 # Created by .ci/postgres.sh beside the tests' own user.
 SECRET_USER = "td3x_secret"
 PASSWORD = "p@ss:w/rd%"
@@ -183,6 +183,8 @@ def test_a_sweep_on_postgresql_writes_its_password_nowhere(pg_url, tmp_path):
 
 def test_postgresqls_own_pgpassword_works_with_a_url_without_password(pg_url, monkeypatch):
     """What docs/sweeps.md advises: the URL without its password, the password in PGPASSWORD (read by libpq)."""
+    from sb3_td3x.sweeps.storage import open_storage
+
     url = secret_user_url(pg_url).replace(":" + quote(PASSWORD, safe=""), "")
     monkeypatch.delenv(PASSWORD_ENV, raising=False)
     monkeypatch.setenv("PGPASSWORD", PASSWORD)
@@ -195,6 +197,10 @@ def test_postgresqls_own_pgpassword_works_with_a_url_without_password(pg_url, mo
 def test_launcher_jobs_get_the_password_through_their_environment(monkeypatch):
     """``--launcher`` pickles the workers' command line into its job folder: the password leaves the URL for
     ``SB3_TD3X_STORAGE_PASSWORD``, which the jobs inherit."""
+    from sb3_td3x.sweeps.cli import _password_to_environment
+    from sb3_td3x.sweeps.storage import PASSWORD_ENV as NAME
+
+    assert NAME == PASSWORD_ENV
     monkeypatch.setenv(PASSWORD_ENV, "placeholder")  # restored after the test
     url = f"postgresql+psycopg2://td3x:{quote(PASSWORD, safe='')}@db-host:5432/td3x"
     assert _password_to_environment(url) == "postgresql+psycopg2://td3x@db-host:5432/td3x"
@@ -209,7 +215,11 @@ def test_a_storage_url_that_cannot_be_read_is_one_clear_line_without_its_passwor
     show it), a port that is not a number: one line saying how to write the URL, no traceback, no password."""
     from sb3_td3x.sweeps.cli import main
 
-    code = main([str(SMOKE), "--storage", url, "--output-dir", str(tmp_path)])
+    factory = logging.getLogRecordFactory()
+    try:
+        code = main([str(SMOKE), "--storage", url, "--output-dir", str(tmp_path)])
+    finally:
+        logging.setLogRecordFactory(factory)  # main() wraps it for the rest of its process
     err = capsys.readouterr().err
     assert code == 2 and err.startswith("error: storage 'postgresql://u:***@127.0.0.1:") and err.count("\n") == 1, err
     assert "percent-encode" in err and "SB3_TD3X_STORAGE_PASSWORD" in err

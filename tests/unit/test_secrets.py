@@ -128,7 +128,15 @@ def test_the_value_of_a_secret_environment_variable_is_masked_wherever_it_appear
     assert redact("wandb: using 0123456789abcdef-key, short") == "wandb: using ***, short"
 
 
-def test_log_lines_are_redacted(caplog):
+@pytest.fixture
+def log_record_factory():
+    """Whatever a test installs as the log record factory is taken away after it."""
+    factory = logging.getLogRecordFactory()
+    yield
+    logging.setLogRecordFactory(factory)
+
+
+def test_log_lines_are_redacted(caplog, log_record_factory):
     redact_log_records()
     redact_log_records()  # once is enough: the second call does not wrap again
     log = logging.getLogger("sb3_td3x.test_secrets")
