@@ -99,6 +99,18 @@ def test_the_hook_list_is_the_td3x_methods_and_the_docstring_table():
         assert f":meth:`{hook.name}`" in TD3X.__doc__, f"{hook.name} is missing from the TD3X docstring table"
 
 
+def test_every_fast_path_declares_what_it_replaces_among_the_hooks():
+    from sb3_td3x.td3x.update_paths.compiled import FunctionalCompiledUpdate
+    from sb3_td3x.td3x.update_paths.exploration import DirectMlpActor
+    from sb3_td3x.td3x.update_paths.mlp import MlpUpdate
+
+    for path in (MlpUpdate, FunctionalCompiledUpdate, DirectMlpActor):
+        assert set(path.replaces) <= set(HOOK_NAMES), path
+    # MlpUpdate writes out every hook of steps 5 to 13; the ones it calls are the model's own.
+    assert set(HOOK_NAMES) - set(MlpUpdate.replaces) == {
+        "sample_batch", "should_update_actor", "update_actor_target", "update_critic_target"}
+
+
 def _module_imports(path: Path) -> set[str]:
     """The sb3_td3x modules ``path`` imports at run time (not under ``if TYPE_CHECKING``)."""
     tree = ast.parse(path.read_text())

@@ -18,6 +18,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 import torch as th
+import torch.optim.optimizer as _optim_module
 
 from sb3_td3x.td3x.update_paths import requirements
 
@@ -47,7 +48,7 @@ class _Call(th.nn.Module):
         return fn()
 
 
-class FunctionalCompiledUpdate:
+class FunctionalCompiledUpdate(requirements.FastPath):
     """
     ``compile_update=True``: steps 5 to 15 as one compiled graph per value of ``update_actor``.
 
@@ -81,13 +82,7 @@ class FunctionalCompiledUpdate:
         self._critic_update = th.compile(lambda batch: self._update(batch, False), dynamic=False)
         self._full_update = th.compile(lambda batch: self._update(batch, True), dynamic=False)
 
-    replaces: tuple[str, ...] = ("gradient_step", "update_from_batch", "optimize_critic", "optimize_actor")
-
-    @classmethod
-    def why_not(cls, model: TD3X) -> str | None:
-        """Why ``model``'s update cannot be made functional, or ``None`` when it can."""
-        reasons = cls.requirements(model)
-        return "; ".join(reasons) if reasons else None
+    replaces = ("gradient_step", "update_from_batch", "optimize_critic", "optimize_actor")
 
     @classmethod
     def requirements(cls, model: TD3X) -> list[str]:
@@ -105,6 +100,8 @@ class FunctionalCompiledUpdate:
                 reasons.append("the optimizer uses amsgrad, maximize or differentiable")
             if optimizer._optimizer_step_pre_hooks or optimizer._optimizer_step_post_hooks:
                 reasons.append("an optimizer has step hooks")
+        if _optim_module._global_optimizer_pre_hooks or _optim_module._global_optimizer_post_hooks:
+            reasons.append("a global optimizer step hook is registered")
         for role in ("actor", "critic"):
             reasons += [r for r in requirements.plain_parameters(getattr(model, role), role, th.float32)]
         reasons += [r for r in requirements.module_hooks(model.policy, "policy") if "backward" in r]

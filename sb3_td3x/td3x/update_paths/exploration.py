@@ -20,7 +20,7 @@ from sb3_td3x.td3x.update_paths import requirements
 from sb3_td3x.td3x.update_paths.mlp import addmm_relu, relu_mlp
 
 
-class DirectMlpActor:
+class DirectMlpActor(requirements.FastPath):
     """pi(s) of a ReLU MLP actor from its Linear layers: what the module computes, with the same kernels."""
 
     def __init__(self, layers: list[nn.Linear]):
@@ -30,8 +30,8 @@ class DirectMlpActor:
         weights, biases = [layer.weight for layer in self.layers], [layer.bias for layer in self.layers]
         return relu_mlp(weights, biases, obs.float(), linear_relu=addmm_relu)[0].tanh_()
 
-    @staticmethod
-    def requirements(model: Any) -> list[str]:
+    @classmethod
+    def requirements(cls, model: Any) -> list[str]:
         """Every assumption of the shortcut that ``model`` breaks (empty: it computes what ``actor.forward`` does)."""
         reasons = requirements.stock_mlp_actor(model.actor, model.observation_space, "actor")
         reasons += requirements.stock_predict(model)
@@ -39,10 +39,6 @@ class DirectMlpActor:
         reasons += requirements.plain_parameters(model.actor, "actor")
         return list(dict.fromkeys(reasons))
 
-    @classmethod
-    def why_not(cls, model: Any) -> str | None:
-        reasons = cls.requirements(model)
-        return "; ".join(reasons) if reasons else None
 
 
 def choose_exploration_actor(model: Any) -> tuple[Callable[[th.Tensor], th.Tensor] | None, str, str]:

@@ -363,7 +363,7 @@ def actor_gradients(obs: th.Tensor, actor: Weights, critic: Weights) -> tuple[li
     return weight_grads[::-1], bias_grads[::-1], loss
 
 
-class MlpUpdate:
+class MlpUpdate(requirements.FastPath):
     """Steps 5 to 15 of TD3 for MLP policies, gradients by hand (see the module's docstring).
 
     It replaces the hooks in :attr:`replaces` (their arithmetic is written out here) and calls the model's own
@@ -375,7 +375,7 @@ class MlpUpdate:
     eager.
     """
 
-    replaces: tuple[str, ...] = (
+    replaces = (
         "gradient_step",
         "update_from_batch",
         "compute_target_q",
@@ -400,12 +400,6 @@ class MlpUpdate:
         self.critic = MlpStack([relu_mlp_layers(q, None) for q in model.critic.q_networks])  # type: ignore[misc]
         self.critic_target = MlpStack([relu_mlp_layers(q, None) for q in model.critic_target.q_networks])  # type: ignore[misc]
         self.dtype = th.float32
-
-    @classmethod
-    def why_not(cls, model: TD3X) -> str | None:
-        """Why ``model``'s update needs the hooks as written (autograd), or ``None`` when this update computes it."""
-        reasons = cls.requirements(model)
-        return "; ".join(reasons) if reasons else None
 
     @classmethod
     def requirements(cls, model: TD3X) -> list[str]:

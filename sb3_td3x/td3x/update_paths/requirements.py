@@ -10,7 +10,7 @@ user's code runs.
 from __future__ import annotations
 
 from collections.abc import Iterable
-from typing import Any
+from typing import Any, ClassVar
 
 import torch as th
 from gymnasium import spaces
@@ -40,6 +40,26 @@ _GLOBAL_MODULE_HOOKS = (
     "_global_backward_hooks",
     "_global_backward_pre_hooks",
 )
+
+
+class FastPath:
+    """A way of running TD3X's math that replaces some of the user's code with its own. It declares which hooks it
+    replaces (:attr:`replaces`) and what else it assumes (:meth:`requirements`); it may run only where
+    :meth:`why_not` is ``None``."""
+
+    #: The hooks (:data:`sb3_td3x.td3x.hooks.HOOK_NAMES`) whose code this path does not call.
+    replaces: ClassVar[tuple[str, ...]] = ()
+
+    @classmethod
+    def requirements(cls, model: Any) -> list[str]:
+        """Every assumption of this path that ``model`` breaks (empty: it computes what the model's code computes)."""
+        raise NotImplementedError
+
+    @classmethod
+    def why_not(cls, model: Any) -> str | None:
+        """Why this path may not run for ``model`` (every reason, joined), or ``None`` when it may."""
+        reasons = cls.requirements(model)
+        return "; ".join(reasons) if reasons else None
 
 
 def flat_box(space: Any) -> bool:
