@@ -1,7 +1,13 @@
+"""Shared set-up and helpers of the test layers (``tests/README.md``).
+
+Helpers are plain functions here, imported as ``from conftest import random_batches, feed``.
+"""
+
 import os
 
 import pytest
 import torch as th
+from stable_baselines3.common.type_aliases import ReplayBufferSamples
 
 # Two cores: keep torch from oversubscribing them when tests run in parallel processes.
 th.set_num_threads(int(os.environ.get("SB3_TD3X_TEST_THREADS", "1")))
@@ -18,3 +24,30 @@ def _sb3_logdir(tmp_path_factory):
 @pytest.fixture(autouse=True)
 def _headless_rendering(monkeypatch):
     monkeypatch.setenv("MUJOCO_GL", os.environ.get("MUJOCO_GL", "egl"))
+
+
+def random_batches(
+    n: int, batch_size: int = 32, obs_dim: int = 3, action_dim: int = 1, seed: int = 0, done_probability: float = 0.2
+) -> list[ReplayBufferSamples]:
+    """``n`` hand-made replay batches (Pendulum-v1's shapes by default): observations N(0, 1), actions U(-1, 1),
+    rewards N(0, 1), dones with probability ``done_probability``; the same batches for the same arguments."""
+    g = th.Generator().manual_seed(seed)
+    return [
+        ReplayBufferSamples(
+            observations=th.randn(batch_size, obs_dim, generator=g),
+            actions=th.rand(batch_size, action_dim, generator=g) * 2 - 1,
+            next_observations=th.randn(batch_size, obs_dim, generator=g),
+            dones=(th.rand(batch_size, 1, generator=g) < done_probability).float(),
+            rewards=th.randn(batch_size, 1, generator=g),
+        )
+        for _ in range(n)
+    ]
+
+
+def feed(model, batches: list[ReplayBufferSamples], seed: int | None = None) -> None:
+    """Make ``model.sample_batch`` return ``batches`` in order (set on the instance: the fast paths call it too, so it
+    does not switch them off); with ``seed``, also seed torch so that models fed alike draw the same noise."""
+    it = iter(batches)
+    model.sample_batch = lambda batch_size: next(it)
+    if seed is not None:
+        th.manual_seed(seed)

@@ -2,6 +2,7 @@
 
 import pytest
 import torch as th
+from conftest import random_batches
 from stable_baselines3 import DDPG as SB3DDPG
 from stable_baselines3 import TD3
 from stable_baselines3.common.logger import configure
@@ -14,17 +15,7 @@ OBS_DIM, ACT_DIM, BATCH = 3, 1, 32
 
 
 def batches(n: int) -> list[ReplayBufferSamples]:
-    g = th.Generator().manual_seed(42)
-    return [
-        ReplayBufferSamples(
-            observations=th.randn(BATCH, OBS_DIM, generator=g),
-            actions=th.rand(BATCH, ACT_DIM, generator=g) * 2 - 1,
-            next_observations=th.randn(BATCH, OBS_DIM, generator=g),
-            dones=(th.rand(BATCH, 1, generator=g) < 0.2).float(),
-            rewards=th.randn(BATCH, 1, generator=g),
-        )
-        for _ in range(n)
-    ]
+    return random_batches(n, BATCH, OBS_DIM, ACT_DIM, seed=42)
 
 
 def run_steps(model, data: list[ReplayBufferSamples], seed: int) -> None:

@@ -176,7 +176,8 @@ def test_a_typo_or_a_wrong_type_fails_while_composing(override):
     "override, field",
     [
         ("algo.tau=2", "algo.tau"),
-        ("algo.tau=0", "algo.tau"),
+        ("algo.tau=-0.1", "algo.tau"),  # tau=0 is valid (the constructor allows it: frozen targets)
+        ("algo.gradient_steps=-2", "algo.gradient_steps"),
         ("total_timesteps=-1", "total_timesteps"),
         ("algo.gamma=1.5", "algo.gamma"),
         ("algo.learning_rate=0", "algo.learning_rate"),

@@ -44,7 +44,7 @@ def test_out_of_range_values_fail_before_training(tmp_path):
     result = run_py("algo.tau=2", "total_timesteps=-1", f"run_dir={tmp_path}/run")
     assert result.returncode == EXIT_CONFIG_ERROR
     assert "Traceback" not in result.stdout
-    assert_one_paragraph(result.stderr, "algo.tau=2.0 must be in (0, 1]", "total_timesteps=-1 must be a positive")
+    assert_one_paragraph(result.stderr, "algo.tau=2.0 must be a float in [0, 1]", "total_timesteps=-1 must be a positive")
     assert not (tmp_path / "run" / "checkpoints").exists()
 
 

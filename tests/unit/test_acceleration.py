@@ -6,6 +6,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
+from conftest import feed, random_batches
 from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.logger import configure
 from stable_baselines3.common.monitor import Monitor
@@ -24,12 +25,7 @@ SLOW_BF16 = cpu_bf16_matmul_is_native() is False
 
 
 def batches(n: int, seed: int = 0) -> list[ReplayBufferSamples]:
-    g = th.Generator().manual_seed(seed)
-    return [
-        ReplayBufferSamples(th.randn(32, 3, generator=g), th.rand(32, 1, generator=g) * 2 - 1, th.randn(32, 3, generator=g),
-                            (th.rand(32, 1, generator=g) < 0.2).float(), th.randn(32, 1, generator=g))
-        for _ in range(n)
-    ]
+    return random_batches(n, seed=seed)
 
 
 def small(policy_kwargs: dict | None = None, cls: type[TD3X] = TD3X, **kwargs) -> TD3X:
@@ -37,13 +33,6 @@ def small(policy_kwargs: dict | None = None, cls: type[TD3X] = TD3X, **kwargs) -
     model = cls("MlpPolicy", "Pendulum-v1", policy_kwargs=policy_kwargs, learning_starts=0, seed=0, **kwargs)
     model.set_logger(configure(None, []))
     return model
-
-
-def feed(model: TD3X, data: list[ReplayBufferSamples]) -> None:
-    """Make ``model`` train on ``data``, batch after batch, from the same random state as any other model fed so."""
-    it = iter(data)
-    model.sample_batch = lambda batch_size: next(it)
-    th.manual_seed(0)
 
 
 def assert_same_weights(reference: TD3X, model: TD3X, **tolerance) -> None:
@@ -56,7 +45,7 @@ def test_bf16_keeps_fp32_weights_and_follows_fp32_closely():
     bf16.policy.load_state_dict(fp32.policy.state_dict())
     data = batches(4)
     for model in (fp32, bf16):
-        feed(model, data)
+        feed(model, data, seed=0)
         model.train(gradient_steps=4, batch_size=32)
     assert all(p.dtype == th.float32 for p in bf16.policy.parameters())
     assert_same_weights(fp32, bf16, rtol=0.05, atol=2e-3)
@@ -64,7 +53,7 @@ def test_bf16_keeps_fp32_weights_and_follows_fp32_closely():
 
 
 def train_fed(model: TD3X, data: list[ReplayBufferSamples], progresses=(1.0, 0.5, 0.25)) -> None:
-    feed(model, data)
+    feed(model, data, seed=0)
     # Random ops as in eager mode (Inductor draws its own random numbers otherwise)
     with th._inductor.config.patch(fallback_random=True):
         for progress in progresses:  # the learning rate changes between train() calls

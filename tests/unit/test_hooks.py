@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 import torch as th
 import torch.nn.functional as F
+from conftest import feed, random_batches
 from stable_baselines3.common.logger import configure
 from stable_baselines3.common.type_aliases import ReplayBufferSamples
 
@@ -21,20 +22,7 @@ def make_model(**kwargs) -> TD3X:
 
 
 def make_batch(seed: int = 0, batch_size: int = BATCH) -> ReplayBufferSamples:
-    g = th.Generator().manual_seed(seed)
-    return ReplayBufferSamples(
-        observations=th.randn(batch_size, OBS_DIM, generator=g),
-        actions=th.rand(batch_size, ACT_DIM, generator=g) * 2 - 1,
-        next_observations=th.randn(batch_size, OBS_DIM, generator=g),
-        dones=(th.rand(batch_size, 1, generator=g) < 0.3).float(),
-        rewards=th.randn(batch_size, 1, generator=g),
-    )
-
-
-def feed(model: TD3X, batches: list[ReplayBufferSamples]) -> None:
-    """Make ``sample_batch`` return the given batches in order."""
-    it = iter(batches)
-    model.sample_batch = lambda batch_size: next(it)  # type: ignore[method-assign]
+    return random_batches(1, batch_size, OBS_DIM, ACT_DIM, seed=seed, done_probability=0.3)[0]
 
 
 # Step 6 --------------------------------------------------------------------------------------------------------------

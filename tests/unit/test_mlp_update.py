@@ -5,6 +5,7 @@ import copy
 import numpy as np
 import pytest
 import torch as th
+from conftest import feed, random_batches
 from stable_baselines3.common.logger import configure
 from stable_baselines3.common.type_aliases import ReplayBufferSamples
 
@@ -15,17 +16,7 @@ from sb3_td3x.td3x.update_paths.mlp import MlpUpdate
 
 
 def batches(n: int, obs_dim: int = 3, action_dim: int = 1, seed: int = 0) -> list[ReplayBufferSamples]:
-    g = th.Generator().manual_seed(seed)
-    return [
-        ReplayBufferSamples(
-            th.randn(32, obs_dim, generator=g),
-            th.rand(32, action_dim, generator=g) * 2 - 1,
-            th.randn(32, obs_dim, generator=g),
-            (th.rand(32, 1, generator=g) < 0.2).float(),
-            th.randn(32, 1, generator=g),
-        )
-        for _ in range(n)
-    ]
+    return random_batches(n, 32, obs_dim, action_dim, seed=seed)
 
 
 def pair(env: str = "Pendulum-v1", policy_kwargs: dict | None = None, **kwargs) -> tuple[TD3X, TD3X]:
@@ -42,9 +33,7 @@ def pair(env: str = "Pendulum-v1", policy_kwargs: dict | None = None, **kwargs) 
 
 
 def train_on(model: TD3X, data: list[ReplayBufferSamples], progresses=(1.0, 0.6, 0.3)) -> None:
-    it = iter(data)
-    model.sample_batch = lambda batch_size: next(it)
-    th.manual_seed(0)  # the same target policy smoothing noise in both models
+    feed(model, data, seed=0)  # the same target policy smoothing noise in both models
     steps = len(data) // len(progresses)
     for progress in progresses:  # a learning-rate schedule changes between the calls
         model._current_progress_remaining = progress
