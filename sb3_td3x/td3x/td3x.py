@@ -467,15 +467,23 @@ class TD3X(OffPolicyAlgorithm):
         """The gradient step ``train()`` runs, chosen once (:func:`~sb3_td3x.td3x.update_paths.choose.choose_update`)
         and logged: the hooks with autograd, or a faster way that computes the same (``update_path``,
         ``update_reason``)."""
-        if self._step_fn is None:
+        # Chosen again when a hook is set on the instance or a network is replaced after the choice (a cheap check
+        # per train() call; changes inside a module after the first train() are not seen: set them before it).
+        watched = (self.actor, self.critic, self.actor_target, self.critic_target, self._instance_hooks())
+        if self._step_fn is None or self.__dict__.get("_step_fn_for") != watched:
             choice = choose_update(self)
             self.update_path, self.update_reason, self._step_fn = choice.path, choice.reason, choice.step
+            self._step_fn_for = watched
             _, exploration, exploration_reason = self._exploration()
             self.logger.info(
                 f"update: {self.update_path} ({self.update_reason}); "
                 f"exploration: {exploration} ({exploration_reason})"
             )
         return self._step_fn
+
+    def _instance_hooks(self) -> tuple[tuple[str, Any], ...]:
+        """The hooks set on this instance (``model.td_target = fn``), with what they are set to."""
+        return tuple((name, self.__dict__[name]) for name in HOOK_NAMES if name in self.__dict__)
 
     # Step 4 ------------------------------------------------------------------------------------------------------
     def sample_batch(self, batch_size: int) -> ReplayBufferSamples:
@@ -732,6 +740,7 @@ class TD3X(OffPolicyAlgorithm):
             "critic_target",
             "_critic_lr_schedule",
             "_step_fn",
+            "_step_fn_for",
             "_exploration_choice",
             "update_path",
             "update_reason",

@@ -66,6 +66,24 @@ def test_a_hook_set_on_the_instance_is_named(tmp_path):
     assert line.startswith("update: autograd (td_target set on the instance")
 
 
+def test_a_hook_set_after_the_first_train_is_honoured(tmp_path):
+    model = small()
+    model.learn(20)
+    assert model.update_path == "mlp"
+    calls = []
+
+    def td_target(rewards, dones, discounts, next_q):
+        calls.append(1)
+        return rewards
+
+    model.td_target = td_target
+    model.learn(10, reset_num_timesteps=False)
+    assert model.update_path == "autograd" and "td_target set on the instance" in model.update_reason and calls
+    del model.td_target  # back to the stock hook: the fast path again
+    model.learn(10, reset_num_timesteps=False)
+    assert model.update_path == "mlp"
+
+
 def test_mlp_update_false_is_the_reason():
     model = small(mlp_update=False)
     choice = choose_update(model)
