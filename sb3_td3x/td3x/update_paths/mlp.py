@@ -225,10 +225,15 @@ class MlpStack:
     def forward(
         x: th.Tensor, all_weights: list[th.Tensor], all_biases: list[th.Tensor]
     ) -> tuple[th.Tensor, list[th.Tensor]]:
-        """Every network's output on the same input, shape (n, batch, out), and each layer's input (for backward)."""
+        """Every network's output, shape (n, batch, out), and each layer's input (for backward).
+
+        ``x`` is one input for every network, (batch, in), or one per network, (n, batch, in).
+        """
         inputs = [x]
-        # One batched product with the shared input broadcast: (n, batch, out).
-        h = th.baddbmm(all_biases[0].unsqueeze(1), x.expand(all_weights[0].shape[0], *x.shape), all_weights[0].mT)
+        # One batched product, a shared input broadcast: (n, batch, out).
+        h = th.baddbmm(
+            all_biases[0].unsqueeze(1), x if x.dim() == 3 else x.expand(all_weights[0].shape[0], *x.shape), all_weights[0].mT
+        )
         for weights, biases in zip(all_weights[1:], all_biases[1:]):
             h = h.relu_()
             inputs.append(h)
@@ -244,7 +249,7 @@ class MlpStack:
         bias_grads: list[th.Tensor] = []
         grad = grad_out
         for depth in range(len(all_weights) - 1, -1, -1):
-            h = inputs[depth] if depth > 0 else inputs[0].expand(grad.shape[0], *inputs[0].shape)
+            h = inputs[depth] if depth > 0 or inputs[0].dim() == 3 else inputs[0].expand(grad.shape[0], *inputs[0].shape)
             weight_grads.append(th.bmm(grad.mT, h).float())
             bias_grads.append(grad.sum(dim=1).float())
             if depth > 0:
