@@ -26,6 +26,18 @@ def _headless_rendering(monkeypatch):
     monkeypatch.setenv("MUJOCO_GL", os.environ.get("MUJOCO_GL", "egl"))
 
 
+@pytest.fixture
+def pg_url() -> str:
+    """The URL of the PostgreSQL server of the sweep tests (``.ci/postgres.sh``); skipped without one, an error in CI."""
+    url = os.environ.get("SB3_TD3X_TEST_PG_URL")
+    if url:
+        return url
+    how = 'export SB3_TD3X_TEST_PG_URL="$(bash .ci/postgres.sh)"'
+    if os.environ.get("CI", "").lower() == "true":
+        pytest.fail(f"SB3_TD3X_TEST_PG_URL is not set in CI; .ci/run must start PostgreSQL first: {how}")
+    pytest.skip(f"no PostgreSQL server: SB3_TD3X_TEST_PG_URL is not set (start one with {how})")
+
+
 def random_batches(
     n: int, batch_size: int = 32, obs_dim: int = 3, action_dim: int = 1, seed: int = 0, done_probability: float = 0.2
 ) -> list[ReplayBufferSamples]:

@@ -86,17 +86,6 @@ def test_run_py_with_a_wandb_key_writes_it_nowhere(tmp_path):
         assert find_secrets((run_dir / name).read_text()) == [], name
 
 
-@pytest.fixture
-def pg_url() -> str:
-    url = os.environ.get("SB3_TD3X_TEST_PG_URL")
-    if url:
-        return url
-    how = 'export SB3_TD3X_TEST_PG_URL="$(bash .ci/postgres.sh)"'
-    if os.environ.get("CI", "").lower() == "true":
-        pytest.fail(f"SB3_TD3X_TEST_PG_URL is not set in CI; .ci/run must start PostgreSQL first: {how}")
-    pytest.skip(f"no PostgreSQL server: SB3_TD3X_TEST_PG_URL is not set (start one with {how})")
-
-
 def secret_user_url(pg_url: str) -> str:
     """The server of ``pg_url`` as its user ``td3x_secret``, the password URL-encoded; skipped (failed in CI) when
     the server has no such user, i.e. it was not started by this checkout's ``.ci/postgres.sh``."""

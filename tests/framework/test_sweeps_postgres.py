@@ -15,7 +15,6 @@ import uuid
 from pathlib import Path
 
 import optuna
-import pytest
 from omegaconf import OmegaConf
 from optuna.trial import TrialState
 
@@ -24,17 +23,6 @@ from sb3_td3x.sweeps.storage import open_storage
 REPO = Path(__file__).resolve().parents[2]
 SMOKE = REPO / "sweeps" / "pendulum_smoke.yaml"
 N_TRIALS = 4
-
-
-@pytest.fixture
-def pg_url() -> str:
-    url = os.environ.get("SB3_TD3X_TEST_PG_URL")
-    if url:
-        return url
-    how = 'export SB3_TD3X_TEST_PG_URL="$(bash .ci/postgres.sh)"'
-    if os.environ.get("CI", "").lower() == "true":
-        pytest.fail(f"SB3_TD3X_TEST_PG_URL is not set in CI; .ci/run must start PostgreSQL first: {how}")
-    pytest.skip(f"no PostgreSQL server: SB3_TD3X_TEST_PG_URL is not set (start one with {how})")
 
 
 def test_two_workers_share_one_study_and_a_killed_workers_trial_is_marked(pg_url, tmp_path):
