@@ -39,11 +39,11 @@ def train_in_chunks(train, models: list[TD3X], chunks=CHUNKS) -> None:
         train(steps, BATCH)
 
 
-def lone_runs(chunks=CHUNKS, **kwargs) -> tuple[list[TD3X], list[GlobalRandomState]]:
+def lone_runs(chunks=CHUNKS, per_seed=None, **kwargs) -> tuple[list[TD3X], list[GlobalRandomState]]:
     """Each seed trained alone with its own train() (MlpUpdate), from the global state its construction left."""
     models, states = [], []
     for seed in SEEDS:
-        model, _ = filled(seed, **kwargs.get(f"seed{seed}", {}))
+        model, _ = filled(seed, **kwargs, **(per_seed or {}).get(seed, {}))
         train_in_chunks(model.train, [model], chunks)
         assert model.update_path == "mlp"
         models.append(model)
@@ -51,8 +51,8 @@ def lone_runs(chunks=CHUNKS, **kwargs) -> tuple[list[TD3X], list[GlobalRandomSta
     return models, states
 
 
-def batched_models(**kwargs) -> tuple[list[TD3X], list[GlobalRandomState]]:
-    built = [filled(seed, **kwargs.get(f"seed{seed}", {})) for seed in SEEDS]
+def batched_models(per_seed=None, **kwargs) -> tuple[list[TD3X], list[GlobalRandomState]]:
+    built = [filled(seed, **kwargs, **(per_seed or {}).get(seed, {})) for seed in SEEDS]
     return [model for model, _ in built], [state for _, state in built]
 
 
@@ -130,16 +130,36 @@ def test_a_seed_goes_on_alone_and_back():
 def test_per_model_settings_run_per_model():
     """Learning rates, tau and policy_delay are each model's own (its optimizers and hooks): seeds whose actors
     update on different steps still compute their lone runs."""
-    kwargs = {
-        "seed0": {"policy_delay": 1},
-        "seed1": {"policy_delay": 3, "tau": 0.02},
-        "seed2": {"learning_rate": 3e-4, "critic_learning_rate": 1e-3},
+    per_seed = {
+        0: {"policy_delay": 1},
+        1: {"policy_delay": 3, "tau": 0.02},
+        2: {"learning_rate": 3e-4, "critic_learning_rate": 1e-3},
     }
-    lone, lone_states = lone_runs(chunks=(30, 30), **kwargs)
-    models, states = batched_models(**kwargs)
+    lone, lone_states = lone_runs(chunks=(30, 30), per_seed=per_seed)
+    models, states = batched_models(per_seed=per_seed)
     update = SeedStackedMlpUpdate(models, states)
     train_in_chunks(update.train, models, chunks=(30, 30))
     assert [m._n_actor_updates for m in models] == [60, 20, 30]
+    for i in range(len(SEEDS)):
+        assert_same_run(models[i], lone[i], update.streams.states[i], lone_states[i])
+
+
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        {"n_steps": 3},  # NStepReplayBuffer: per-transition discounts
+        {"target_policy_smoothing": False, "clipped_double_q": False},
+        {"policy_kwargs": {"n_critics": 3, "net_arch": {"pi": [16], "qf": [24, 16, 8]}}},
+    ],
+    ids=["n-step", "no-smoothing-no-clipped-double-q", "3-critics-other-widths"],
+)
+def test_other_settings_shared_by_the_seeds(kwargs):
+    lone, lone_states = lone_runs(chunks=(30, 30), **kwargs)
+    models, states = batched_models(**kwargs)
+    if "n_steps" in kwargs:
+        assert getattr(models[0].replay_buffer.sample(4), "discounts", None) is not None
+    update = SeedStackedMlpUpdate(models, states)
+    train_in_chunks(update.train, models, chunks=(30, 30))
     for i in range(len(SEEDS)):
         assert_same_run(models[i], lone[i], update.streams.states[i], lone_states[i])
 
