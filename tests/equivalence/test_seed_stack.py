@@ -144,6 +144,26 @@ def test_per_model_settings_run_per_model():
         assert_same_run(models[i], lone[i], update.streams.states[i], lone_states[i])
 
 
+def test_fused_optimizer_steps_and_target_updates_are_the_per_seed_ones_to_the_bit():
+    """fuse=True: one Adam kernel call per group of equal options and one lerp per tau, over all seeds; the same bits
+    as each model's own optimizer steps and target-update hooks (fuse=False)."""
+    per_seed = {1: {"learning_rate": 3e-4, "tau": 0.02}, 2: {"policy_delay": 3}}
+    runs = []
+    for fuse in (True, False):
+        models, states = batched_models(per_seed=per_seed)
+        train_in_chunks(SeedStackedMlpUpdate(models, states, fuse=fuse).train, models, chunks=(30, 30))
+        runs.append(models)
+    for fused, stepped in zip(*runs):
+        for a, b in zip(fused.policy.state_dict().values(), stepped.policy.state_dict().values()):
+            assert th.equal(a, b)
+        for optimizer in ("actor", "critic"):
+            fused_state = getattr(fused, optimizer).optimizer.state_dict()["state"]
+            stepped_state = getattr(stepped, optimizer).optimizer.state_dict()["state"]
+            for key, fields in stepped_state.items():
+                for field, value in fields.items():
+                    assert th.equal(fused_state[key][field], value), (optimizer, key, field)
+
+
 @pytest.mark.parametrize(
     "kwargs",
     [

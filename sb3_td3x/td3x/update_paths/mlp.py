@@ -100,48 +100,63 @@ def optimizer_step(optimizer: th.optim.Optimizer) -> None:
     differentiable or capturable, a float learning rate, no step hooks, every state already created by a first
     ``step()``), this makes the same two calls ``torch.optim.adam._fused_adam`` makes; otherwise it calls ``step()``.
     """
-    if not _direct_fused_adam(optimizer):
+    call = fused_adam_call(optimizer)
+    if call is None:
         optimizer.step()
+    else:
+        run_fused_adam([call])
 
 
-def _direct_fused_adam(optimizer: th.optim.Optimizer) -> bool:
+def fused_adam_call(optimizer: th.optim.Optimizer) -> tuple[Any, dict[str, Any], list[list[th.Tensor]]] | None:
+    """The kernel a fused Adam or AdamW's ``step()`` ends in, its options, and its tensors (parameters, gradients,
+    ``exp_avg``, ``exp_avg_sq``, ``step``) when nothing else can differ (see :func:`optimizer_step`); else None."""
     if not isinstance(optimizer, th.optim.Adam) or len(optimizer.param_groups) != 1:
-        return False
+        return None
     if optimizer._optimizer_step_pre_hooks or optimizer._optimizer_step_post_hooks:
-        return False
+        return None
     if _optim_module._global_optimizer_pre_hooks or _optim_module._global_optimizer_post_hooks:
-        return False
+        return None
     group = optimizer.param_groups[0]
     if not group.get("fused") or isinstance(group["lr"], th.Tensor):
-        return False
+        return None
     if group["amsgrad"] or group["maximize"] or group["differentiable"] or group["capturable"]:
-        return False
+        return None
     params = [p for p in group["params"] if p.grad is not None]
     states = [optimizer.state.get(p) for p in params]
     if not params or not all(states):
-        return False
-    steps = [state["step"] for state in states]  # type: ignore[index]
-    th._foreach_add_(steps, 1)
+        return None
     kernel = th._fused_adamw_ if group.get("decoupled_weight_decay") else th._fused_adam_
     beta1, beta2 = group["betas"]
-    kernel(
+    options = {"lr": group["lr"], "beta1": beta1, "beta2": beta2, "weight_decay": group["weight_decay"], "eps": group["eps"]}
+    tensors = [
         params,
         [p.grad for p in params],
         [state["exp_avg"] for state in states],  # type: ignore[index]
         [state["exp_avg_sq"] for state in states],  # type: ignore[index]
+        [state["step"] for state in states],  # type: ignore[index]
+    ]
+    return kernel, options, tensors
+
+
+def run_fused_adam(calls: list[tuple[Any, dict[str, Any], list[list[th.Tensor]]]]) -> None:
+    """The calls of :func:`fused_adam_call`, all of one kernel and options, as one step counter increment and one
+    kernel call over all their tensors (the update is elementwise: each tensor's is what its own call computes)."""
+    kernel, options, _ = calls[0]
+    params, grads, exp_avgs, exp_avg_sqs, steps = ([t for call in calls for t in call[2][k]] for k in range(5))
+    th._foreach_add_(steps, 1)
+    kernel(
+        params,
+        grads,
+        exp_avgs,
+        exp_avg_sqs,
         [],
         steps,
         amsgrad=False,
-        lr=group["lr"],
-        beta1=beta1,
-        beta2=beta2,
-        weight_decay=group["weight_decay"],
-        eps=group["eps"],
         maximize=False,
         grad_scale=None,
         found_inf=None,
+        **options,
     )
-    return True
 
 
 class FlatTensors:

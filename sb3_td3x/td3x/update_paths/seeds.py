@@ -9,8 +9,11 @@ noise, the same weights and optimizer states to float rounding. Only the arithme
   :class:`~.mlp.MlpStack`, a leading axis of N seeds (times ``n_critics`` for the critics); every model's Parameters
   are views of it, so its optimizers, target updates, ``save`` and ``load`` see its own parameters as before;
 - each layer of every seed's network runs in one batched product (``baddbmm``/``bmm``), forward and backward;
-- the optimizers are each model's own, stepped per seed (``MlpUpdate``'s ``optimizer_step``), and the target updates
-  are each model's own ``update_critic_target`` and ``update_actor_target`` hooks; ``should_update_actor``,
+- the optimizers are each model's own, and so are the target updates (its ``update_critic_target`` and
+  ``update_actor_target`` hooks). With ``fuse=True`` (the default), the fused Adam (or AdamW) steps of all seeds with
+  equal options are one kernel call, and the stock target updates of all seeds with equal ``tau`` one
+  ``_foreach_lerp_``: both are elementwise, so each tensor gets what its own model's call gives it, to the bit
+  (``tests/equivalence/test_seed_stack.py`` checks it); anything else steps per seed. ``should_update_actor``,
   ``_n_updates``, ``_n_actor_updates``, the learning-rate schedules and the logged statistics are each model's, as
   :meth:`TD3X.train` keeps them.
 
@@ -50,8 +53,18 @@ import torch as th
 from torch import nn
 
 from sb3_td3x.common import denormals
+from sb3_td3x.td3x.hooks import changed_hooks
 from sb3_td3x.td3x.update_paths import requirements
-from sb3_td3x.td3x.update_paths.mlp import MlpStack, MlpUpdate, _matmul, _relu_backward, _tanh_backward, optimizer_step
+from sb3_td3x.td3x.update_paths.mlp import (
+    MlpStack,
+    MlpUpdate,
+    _matmul,
+    _relu_backward,
+    _tanh_backward,
+    fused_adam_call,
+    optimizer_step,
+    run_fused_adam,
+)
 from sb3_td3x.td3x.update_paths.requirements import relu_mlp_layers
 
 if TYPE_CHECKING:
@@ -236,18 +249,21 @@ class SeedStackedMlpUpdate(requirements.FastPath):
         :data:`SHARED_SETTINGS` and the architecture)
     :param random_states: each model's global random state at the start of its training, as its lone run would hold
         it (:meth:`GlobalRandomState.capture`); kept up to date in ``self.streams.states``
+    :param fuse: the seeds' fused Adam steps and stock target updates in one call each where that computes the same
+        (see the module's docstring); ``False`` steps each model's optimizers and calls its target-update hooks
     :raises ValueError: with every reason, when the models cannot be trained together exactly
     """
 
     replaces = MlpUpdate.replaces
 
-    def __init__(self, models: Sequence[TD3X], random_states: Sequence[GlobalRandomState]):
+    def __init__(self, models: Sequence[TD3X], random_states: Sequence[GlobalRandomState], fuse: bool = True):
         reason = self.why_not_together(models)
         if reason is not None:
             raise ValueError(f"SeedStackedMlpUpdate cannot train these models together: {reason}.")
         if len(random_states) != len(models):
             raise ValueError(f"SeedStackedMlpUpdate: {len(models)} models but {len(random_states)} random states.")
         self.models = list(models)
+        self.fuse = fuse
         self.device = self.models[0].device
         self.streams = SeedRandomStreams(random_states, self.device)
         self.n_critics = len(self.models[0].critic.q_networks)
@@ -357,11 +373,37 @@ class SeedStackedMlpUpdate(requirements.FastPath):
             actor_infos: list[dict[str, th.Tensor]] = [{} for _ in self.models]
             if any(update_actor):
                 actor_infos = self._update_actors(th.stack([b.observations for b in batches]), update_actor)  # step 13
-        for model, update in zip(self.models, update_actor):
-            if update:
+        self._update_targets([model for model, update in zip(self.models, update_actor) if update])  # steps 14-15
+        return list(zip(critic_infos, actor_infos))
+
+    def _step_optimizers(self, optimizers: list[th.optim.Optimizer]) -> None:
+        """Each optimizer's step; with ``fuse``, the fused Adams of equal options as one kernel call."""
+        groups: dict[tuple[Any, ...], list[Any]] = {}
+        for optimizer in optimizers:
+            call = fused_adam_call(optimizer) if self.fuse else None
+            if call is None:
+                optimizer_step(optimizer)
+            else:
+                kernel, options, _ = call
+                groups.setdefault((kernel, *sorted(options.items())), []).append(call)
+        for calls in groups.values():
+            run_fused_adam(calls)
+
+    def _update_targets(self, models: list[TD3X]) -> None:
+        """Steps 15 and 14 of ``models``: their own hooks; with ``fuse``, the stock ones of equal ``tau`` as one
+        ``_foreach_lerp_`` (what each model's ``_polyak`` calls; no batch norm here, so nothing else to copy)."""
+        groups: dict[float, tuple[list[th.Tensor], list[th.Tensor]]] = {}
+        for model in models:
+            if self.fuse and not changed_hooks(model, ("update_critic_target", "update_actor_target")):
+                targets, params = groups.setdefault(float(model.tau), ([], []))
+                targets += [*model._critic_target_params, *model._actor_target_params]
+                params += [*model._critic_params, *model._actor_params]
+            else:
                 model.update_critic_target()  # step 15
                 model.update_actor_target()  # step 14
-        return list(zip(critic_infos, actor_infos))
+        with th.no_grad():
+            for tau, (targets, params) in groups.items():
+                th._foreach_lerp_(targets, params, tau)
 
     def _draw(self, batch_size: int) -> tuple[list[Any], list[th.Tensor] | None]:
         """Each seed's batch (step 4) and target smoothing noise (step 6), from its own random stream, in the lone
@@ -399,9 +441,9 @@ class SeedStackedMlpUpdate(requirements.FastPath):
             (self.critic.weights, self.critic.biases),
         )
         self.critic.assign_grads(weight_grads, bias_grads)
+        self._step_optimizers([model.critic.optimizer for model in self.models])  # step 12
         infos = []
-        for i, model in enumerate(self.models):
-            optimizer_step(model.critic.optimizer)  # step 12
+        for i in range(len(self.models)):
             seed_info = {"critic_loss": info["critic_loss"][i], "target_q": info["target_q"][i]}
             for k in range(self.n_critics):
                 seed_info[f"q{k + 1}"] = info["q"][i, k]
@@ -414,15 +456,13 @@ class SeedStackedMlpUpdate(requirements.FastPath):
             obs, self.n_critics, (self.actor.weights, self.actor.biases), (self.critic.weights, self.critic.biases)
         )
         infos: list[dict[str, th.Tensor]] = []
-        for i, (model, update) in enumerate(zip(self.models, update_actor)):
-            if not update:
-                infos.append({})
-                continue
-            for depth, lin in enumerate(self.actor.layers[i]):
-                lin.weight.grad = weight_grads[depth][i]
-                lin.bias.grad = bias_grads[depth][i]
-            optimizer_step(model.actor.optimizer)
-            infos.append({"actor_loss": loss[i]})
+        for i, update in enumerate(update_actor):
+            if update:
+                for depth, lin in enumerate(self.actor.layers[i]):
+                    lin.weight.grad = weight_grads[depth][i]
+                    lin.bias.grad = bias_grads[depth][i]
+            infos.append({"actor_loss": loss[i]} if update else {})
+        self._step_optimizers([m.actor.optimizer for m, update in zip(self.models, update_actor) if update])
         return infos
 
 
