@@ -61,16 +61,20 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=40, help="gradient steps per timing")
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--transitions", type=int, default=2_000)
+    parser.add_argument("--no-fuse", action="store_true", help="per-seed optimizer steps and target updates")
     args = parser.parse_args()
     th.set_num_threads(1)
-    print(f"{cpu_name()}, torch {th.__version__}, 1 thread; {args.env}, net {args.net}, batch {args.batch_size}")
+    print(
+        f"{cpu_name()}, torch {th.__version__}, 1 thread; {args.env}, net {args.net}, batch {args.batch_size}, "
+        f"fuse={not args.no_fuse}"
+    )
     print(f"{'N':>3} {'lone ms/step':>13} {'stacked ms/step':>16} {'speed-up':>9} {'stacked ms/seed':>16} {'swaps ms':>9}")
     for n in args.seeds:
         built = [filled_model(args.env, seed, args.net, args.transitions) for seed in range(n)]
         lone = [model for model, _ in built]
         built = [filled_model(args.env, seed, args.net, args.transitions) for seed in range(n)]
         stacked_models = [model for model, _ in built]
-        stacked = SeedStackedMlpUpdate(stacked_models, [state for _, state in built])
+        stacked = SeedStackedMlpUpdate(stacked_models, [state for _, state in built], fuse=not args.no_fuse)
         for model in lone:  # warm-up: the update chosen, the optimizers' states created
             model.train(4, args.batch_size)
         stacked.train(4, args.batch_size)
