@@ -265,6 +265,11 @@ class SeedStackedMlpUpdate(requirements.FastPath):
         self.models = list(models)
         self.fuse = fuse
         self.device = self.models[0].device
+        if self.device.type == "cuda" and any(state.cuda is None for state in random_states):
+            raise ValueError(
+                f"SeedStackedMlpUpdate: the models are on {self.device}, so each random state needs the CUDA "
+                "generator's too: GlobalRandomState.capture(model.device)."
+            )
         self.streams = SeedRandomStreams(random_states, self.device)
         self.n_critics = len(self.models[0].critic.q_networks)
         self.actor = MlpStack([relu_mlp_layers(m.actor.mu, nn.Tanh) for m in self.models])  # type: ignore[misc]
