@@ -470,7 +470,8 @@ class TD3X(OffPolicyAlgorithm):
         # Chosen again when a hook is set on the instance or a network is replaced after the choice (a cheap check
         # per train() call; changes inside a module after the first train() are not seen: set them before it).
         watched = (self.actor, self.critic, self.actor_target, self.critic_target, self._instance_hooks())
-        if self._step_fn is None or self.__dict__.get("_step_fn_for") != watched:
+        chosen_for = self.__dict__.get("_step_fn_for")  # None for a step set from outside (tests): kept
+        if self._step_fn is None or (chosen_for is not None and chosen_for != watched):
             choice = choose_update(self)
             self.update_path, self.update_reason, self._step_fn = choice.path, choice.reason, choice.step
             self._step_fn_for = watched
@@ -729,7 +730,7 @@ class TD3X(OffPolicyAlgorithm):
         super().load_replay_buffer(path, truncate_last_traj)
         if self.cuda_graph and isinstance(self.replay_buffer, TensorReplayBuffer):
             self.replay_buffer.enable_static_sampling()
-        self._step_fn = None
+        self._step_fn = self._step_fn_for = None
 
     def _excluded_save_params(self) -> list[str]:
         return [
