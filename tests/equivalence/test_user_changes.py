@@ -10,6 +10,7 @@ dropped it would fail the test. Collection must pick the actions SB3's own ``_sa
 
 from __future__ import annotations
 
+import contextlib
 import functools
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -347,7 +348,7 @@ def test_the_stock_setups_take_the_fast_paths_and_match_the_hooks(name):
 )
 def test_compiled_update_trains_what_the_eager_hooks_train(name, path):
     case = {**CASES, **STOCK}[name]
-    with pytest.warns(UserWarning) if path == "compiled_eager_backward" else _no_context():
+    with pytest.warns(UserWarning) if path == "compiled_eager_backward" else contextlib.nullcontext():
         compiled = train_updates(case, updates=20, compile_update=True)
     reference = train_updates(case, updates=20, mlp_update=False)
     assert compiled.update_path == path
@@ -363,7 +364,7 @@ def test_compiled_update_trains_what_the_eager_hooks_train(name, path):
 @pytest.mark.parametrize("name", ["stock-defaults", "critic-forward-subclass", "hook-set-on-instance"])
 def test_bf16_update_trains_what_the_bf16_hooks_train(name):
     case = {**CASES, **STOCK}[name]
-    with pytest.warns(UserWarning) if _bf16_warns() else _no_context():
+    with pytest.warns(UserWarning) if _bf16_warns() else contextlib.nullcontext():
         fast = train_updates(case, bf16=True)
         reference = train_updates(case, bf16=True, mlp_update=False)
     assert reference.update_path == "autograd"
@@ -380,11 +381,3 @@ def _bf16_warns() -> bool:
     from sb3_td3x.td3x.update_paths.precision import bf16_on_cpu_warning
 
     return bf16_on_cpu_warning(th.device("cpu")) is not None
-
-
-class _no_context:
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        return False

@@ -1,6 +1,5 @@
 """One function picks how a model's update runs, and gives its reason (see the package docstring)."""
 
-
 from __future__ import annotations
 
 import warnings

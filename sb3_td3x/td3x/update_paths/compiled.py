@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING, Any
 import torch as th
 import torch.optim.optimizer as _optim_module
 
+from sb3_td3x.td3x.hooks import changed_hooks
 from sb3_td3x.td3x.update_paths import requirements
 
 if TYPE_CHECKING:
@@ -90,7 +91,7 @@ class FunctionalCompiledUpdate(requirements.FastPath):
         AdamW with one parameter group and no step hooks, every parameter trainable and without gradient hooks
         (``torch.func`` neither skips frozen parameters nor runs tensor hooks), no backward hooks on modules, no
         batch norm."""
-        reasons = requirements.hooks_as_written(model, cls.replaces)
+        reasons = changed_hooks(model, cls.replaces)
         for optimizer in (model.critic.optimizer, model.actor.optimizer):
             if type(optimizer) not in (th.optim.Adam, th.optim.AdamW):
                 reasons.append(f"the optimizer is {type(optimizer).__name__}, not Adam or AdamW")
@@ -103,7 +104,7 @@ class FunctionalCompiledUpdate(requirements.FastPath):
         if _optim_module._global_optimizer_pre_hooks or _optim_module._global_optimizer_post_hooks:
             reasons.append("a global optimizer step hook is registered")
         for role in ("actor", "critic"):
-            reasons += [r for r in requirements.plain_parameters(getattr(model, role), role, th.float32)]
+            reasons += requirements.plain_parameters(getattr(model, role), role)
         reasons += [r for r in requirements.module_hooks(model.policy, "policy") if "backward" in r]
         reasons += requirements.no_buffers(model.policy)
         return list(dict.fromkeys(reasons))

@@ -40,7 +40,6 @@ class DirectMlpActor(requirements.FastPath):
         return list(dict.fromkeys(reasons))
 
 
-
 def choose_exploration_actor(model: Any) -> tuple[Callable[[th.Tensor], th.Tensor] | None, str, str]:
     """The shortcut collection calls for pi(s), its name, and why: a ``DirectMlpActor`` where it computes what
     ``actor.forward`` computes, or ``None`` (SB3's own ``_sample_action``, through ``predict``) with the reason."""

@@ -32,6 +32,7 @@ import torch as th
 import torch.optim.optimizer as _optim_module
 from torch import nn
 
+from sb3_td3x.td3x.hooks import changed_hooks
 from sb3_td3x.td3x.update_paths import requirements
 from sb3_td3x.td3x.update_paths.requirements import relu_mlp_layers
 
@@ -424,7 +425,7 @@ class MlpUpdate(requirements.FastPath):
     @classmethod
     def requirements(cls, model: TD3X) -> list[str]:
         """Every assumption of this update that ``model`` breaks (empty: it computes what the hooks compute)."""
-        reasons = requirements.hooks_as_written(model, cls.replaces)
+        reasons = changed_hooks(model, cls.replaces)
         reasons += requirements.stock_mlp_actor(model.actor, model.observation_space, "actor")
         reasons += requirements.stock_mlp_actor(model.actor_target, model.observation_space, "actor_target")
         reasons += requirements.stock_mlp_critic(model.critic, "critic")

@@ -20,16 +20,12 @@ from stable_baselines3.td3.policies import Actor
 from torch import nn
 from torch.nn.modules import module as _module_globals
 
-from sb3_td3x.td3x.hooks import changed_hooks, defining_class, reference_class
+from sb3_td3x.td3x.hooks import defining_class, reference_class
 from sb3_td3x.td3x.policies import TD3XCritic, TD3XPolicy
 
-# The SB3 modules TD3X's fast paths know the arithmetic of, and the methods of each they stand in for.
-STOCK_MODULES: dict[str, tuple[type, tuple[str, ...]]] = {
-    "actor": (Actor, ("forward", "extract_features", "_predict")),
-    "actor_target": (Actor, ("forward", "extract_features", "_predict")),
-    "critic": (TD3XCritic, ("forward", "q1_forward", "q_values", "extract_features")),
-    "critic_target": (TD3XCritic, ("forward", "q1_forward", "q_values", "extract_features")),
-}
+# The methods of SB3's ``Actor`` and of ``TD3XCritic`` that the fast paths stand in for.
+ACTOR_METHODS = ("forward", "extract_features", "_predict")
+CRITIC_METHODS = ("forward", "q1_forward", "q_values", "extract_features")
 
 # What SB3's ``predict`` runs between the observation and the actor: the exploration shortcut skips these.
 PREDICT_METHODS = ("predict", "_predict", "forward", "obs_to_tensor", "scale_action", "unscale_action")
@@ -65,11 +61,6 @@ class FastPath:
 def flat_box(space: Any) -> bool:
     """A 1-D Box: what SB3 preprocesses with ``.float()`` alone (Discrete and MultiDiscrete are one-hot encoded)."""
     return isinstance(space, spaces.Box) and len(space.shape) == 1 and not is_image_space(space)
-
-
-def hooks_as_written(model: Any, names: Iterable[str]) -> list[str]:
-    """The hooks among ``names`` that the user changed (on a subclass or on the instance)."""
-    return changed_hooks(model, tuple(names))
 
 
 def _overridden_methods(obj: Any, stock: type, methods: Iterable[str]) -> list[str]:
@@ -151,16 +142,20 @@ def plain_parameters(module: nn.Module, role: str, dtype: th.dtype = th.float32)
     return found[:3] + ([f"and {len(found) - 3} more"] if len(found) > 3 else [])
 
 
+def _flatten_extractor(module: nn.Module, role: str) -> list[str]:
+    """``module``'s features extractor is SB3's ``FlattenExtractor`` as written."""
+    extractor = getattr(module, "features_extractor", None)
+    if type(extractor) is not FlattenExtractor:
+        return [f"the {role}'s features extractor is a {type(extractor).__name__}, not FlattenExtractor"]
+    return stock_module(extractor, f"{role}.features_extractor", FlattenExtractor, ("forward",))
+
+
 def stock_mlp_actor(actor: nn.Module, observation_space: Any, role: str = "actor") -> list[str]:
     """An SB3 ``Actor`` as TD3 builds it: flat observations, ``FlattenExtractor``, a ReLU MLP with a tanh output."""
-    reasons = stock_module(actor, role, Actor, STOCK_MODULES["actor"][1])
+    reasons = stock_module(actor, role, Actor, ACTOR_METHODS)
     if not flat_box(observation_space):
         reasons.append(f"the observations are not a flat Box (got {observation_space})")
-    extractor = getattr(actor, "features_extractor", None)
-    if type(extractor) is not FlattenExtractor:
-        reasons.append(f"the {role}'s features extractor is a {type(extractor).__name__}, not FlattenExtractor")
-    else:
-        reasons += stock_module(extractor, f"{role}.features_extractor", FlattenExtractor, ("forward",))
+    reasons += _flatten_extractor(actor, role)
     if relu_mlp_layers(getattr(actor, "mu", None), nn.Tanh) is None:
         reasons.append(f"the {role} is not a ReLU MLP with a tanh output (Linear, ReLU, ..., Linear, Tanh)")
     return reasons
@@ -168,12 +163,8 @@ def stock_mlp_actor(actor: nn.Module, observation_space: Any, role: str = "actor
 
 def stock_mlp_critic(critic: nn.Module, role: str = "critic") -> list[str]:
     """A ``TD3XCritic`` as TD3 builds it: ``FlattenExtractor``, ReLU MLP critics of one architecture."""
-    reasons = stock_module(critic, role, TD3XCritic, STOCK_MODULES["critic"][1])
-    extractor = getattr(critic, "features_extractor", None)
-    if type(extractor) is not FlattenExtractor:
-        reasons.append(f"the {role}'s features extractor is a {type(extractor).__name__}, not FlattenExtractor")
-    else:
-        reasons += stock_module(extractor, f"{role}.features_extractor", FlattenExtractor, ("forward",))
+    reasons = stock_module(critic, role, TD3XCritic, CRITIC_METHODS)
+    reasons += _flatten_extractor(critic, role)
     shapes = None
     for q in getattr(critic, "q_networks", []):
         linears = relu_mlp_layers(q, None)
