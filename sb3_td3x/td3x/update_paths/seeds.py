@@ -248,7 +248,8 @@ class SeedStackedMlpUpdate(requirements.FastPath):
     :param models: the N models, one per seed (distinct, each one ``MlpUpdate`` would train, sharing
         :data:`SHARED_SETTINGS` and the architecture)
     :param random_states: each model's global random state at the start of its training, as its lone run would hold
-        it (:meth:`GlobalRandomState.capture`); kept up to date in ``self.streams.states``
+        it (:meth:`GlobalRandomState.capture`); kept up to date in ``self.streams.states``. Or a
+        :class:`SeedRandomStreams`, used as it is (its states are then the caller's too)
     :param fuse: the seeds' fused Adam steps and stock target updates in one call each where that computes the same
         (see the module's docstring); ``False`` steps each model's optimizers and calls its target-update hooks
     :raises ValueError: with every reason, when the models cannot be trained together exactly
@@ -256,10 +257,18 @@ class SeedStackedMlpUpdate(requirements.FastPath):
 
     replaces = MlpUpdate.replaces
 
-    def __init__(self, models: Sequence[TD3X], random_states: Sequence[GlobalRandomState], fuse: bool = True):
+    def __init__(
+        self,
+        models: Sequence[TD3X],
+        random_states: Sequence[GlobalRandomState] | SeedRandomStreams,
+        fuse: bool = True,
+    ):
         reason = self.why_not_together(models)
         if reason is not None:
             raise ValueError(f"SeedStackedMlpUpdate cannot train these models together: {reason}.")
+        streams = random_states if isinstance(random_states, SeedRandomStreams) else None
+        if streams is not None:
+            random_states = streams.states
         if len(random_states) != len(models):
             raise ValueError(f"SeedStackedMlpUpdate: {len(models)} models but {len(random_states)} random states.")
         self.models = list(models)
@@ -270,7 +279,8 @@ class SeedStackedMlpUpdate(requirements.FastPath):
                 f"SeedStackedMlpUpdate: the models are on {self.device}, so each random state needs the CUDA "
                 "generator's too: GlobalRandomState.capture(model.device)."
             )
-        self.streams = SeedRandomStreams(random_states, self.device)
+        # Shared with the caller when it gave its streams (SeedBatch: collection draws from the same ones).
+        self.streams = streams if streams is not None else SeedRandomStreams(random_states, self.device)
         self.n_critics = len(self.models[0].critic.q_networks)
         self.actor = MlpStack([relu_mlp_layers(m.actor.mu, nn.Tanh) for m in self.models])  # type: ignore[misc]
         self.actor_target = MlpStack([relu_mlp_layers(m.actor_target.mu, nn.Tanh) for m in self.models])  # type: ignore[misc]

@@ -1,0 +1,217 @@
+"""SeedBatch (issue 17): N seeds trained in one process compute what N lone ``learn()`` calls compute.
+
+Each test builds the same models twice from one factory: once alone, ``make(seed).learn(...)`` one after the other,
+and once as a batch. Collection (exploration noise from numpy's global generator, random actions before
+``learning_starts``), sampling, the target smoothing noise and the weights must agree seed by seed, through the
+batched update (``seed_stacked_mlp``) and through the per-seed one (an overridden loss hook); and they must not when
+the seeds' random streams are shared or swapped.
+"""
+
+import contextlib
+
+import numpy as np
+import pytest
+import torch as th
+from stable_baselines3 import TD3
+from stable_baselines3.common.callbacks import BaseCallback, EvalCallback
+from stable_baselines3.common.noise import NormalActionNoise
+
+from sb3_td3x import TD3X, SeedBatch
+from sb3_td3x.td3x.update_paths.seeds import GlobalRandomState, SeedRandomStreams
+
+SEEDS = (0, 1, 2)
+STEPS = 450  # 350 gradient steps after learning_starts=100
+
+
+class HuberTD3X(TD3X):
+    """An overridden loss hook: the batch runs it per seed, as written."""
+
+    def critic_loss(self, current_q, target_q):
+        loss = sum(th.nn.functional.smooth_l1_loss(q, target_q) for q in current_q)
+        return loss, {"critic_loss": loss.detach()}
+
+
+def factory(cls=TD3X, **kwargs):
+    def make(seed):
+        options = {
+            "learning_starts": 100,
+            "batch_size": 64,
+            "policy_kwargs": {"net_arch": [32, 32]},
+            "action_noise": NormalActionNoise(np.zeros(1), 0.1 * np.ones(1)),  # numpy's global generator
+            **kwargs,
+        }
+        return cls("MlpPolicy", "Pendulum-v1", seed=seed, **options)
+
+    return make
+
+
+def lone_runs(make, steps=STEPS):
+    return [make(seed).learn(steps) for seed in SEEDS]
+
+
+def differences(batch, lone):
+    """Per seed: the largest weight difference to its lone run."""
+    return [
+        max((a - b).abs().max().item() for a, b in zip(m.policy.state_dict().values(), l.policy.state_dict().values()))
+        for m, l in zip(batch, lone)
+    ]
+
+
+def assert_same_runs(batch, lone):
+    for i, (model, alone) in enumerate(zip(batch, lone)):
+        assert (model.num_timesteps, model._n_updates) == (alone.num_timesteps, alone._n_updates)
+        pos, start = alone.replay_buffer.pos, alone.learning_starts
+        for field in ("observations", "actions", "rewards"):  # the same transitions: collection is the lone run's
+            ours, theirs = (np.asarray(getattr(m.replay_buffer, field)[:pos]) for m in (model, alone))
+            # The random actions before learning_starts to the bit; the actor's after it to float rounding.
+            np.testing.assert_array_equal(ours[:start], theirs[:start])
+            np.testing.assert_allclose(ours, theirs, rtol=1e-4, atol=1e-5, err_msg=f"seed {i} {field}")
+        for (name, a), b in zip(alone.policy.state_dict().items(), model.policy.state_dict().values()):
+            th.testing.assert_close(b, a, rtol=1e-4, atol=1e-5, msg=lambda m, name=name, i=i: f"seed {i} {name}: {m}")
+
+
+@pytest.mark.parametrize(
+    ("cls", "path"), [(TD3X, "seed_stacked_mlp"), (HuberTD3X, "per_seed")], ids=["default", "overridden-critic_loss"]
+)
+def test_a_batch_computes_the_lone_runs(cls, path):
+    make = factory(cls)
+    lone = lone_runs(make)
+    caller = np.random.get_state()
+    batch = SeedBatch(make, SEEDS).learn(STEPS)
+    assert batch.update_path == path
+    if cls is HuberTD3X:
+        assert "critic_loss overridden by HuberTD3X" in batch.update_reason
+    assert all(m._n_updates == STEPS - 100 for m in batch)
+    assert_same_runs(batch, lone)
+    # The caller's global random state is as it was.
+    assert all(np.array_equal(a, b) for a, b in zip(np.random.get_state(), caller))
+
+
+def test_the_test_fails_when_the_math_differs():
+    """A batch of a model whose loss differs from the lone runs' is seen."""
+    lone = lone_runs(factory())
+    batch = SeedBatch(factory(HuberTD3X), SEEDS).learn(STEPS)
+    with pytest.raises(AssertionError):
+        assert_same_runs(batch, lone)
+
+
+@contextlib.contextmanager
+def _no_swap(self, i):
+    yield  # every seed draws from the one global stream, one after the other
+
+
+@pytest.mark.parametrize("broken", ["one_shared_stream", "streams_swapped"])
+def test_shared_or_mixed_random_streams_are_detected(broken, monkeypatch):
+    make = factory()
+    lone = lone_runs(make, steps=200)
+    if broken == "one_shared_stream":
+        monkeypatch.setattr(SeedRandomStreams, "seed", _no_swap)
+        batch = SeedBatch(make, SEEDS)
+    else:
+        batch = SeedBatch(make, SEEDS)
+        batch.streams.states[0], batch.streams.states[1] = batch.streams.states[1], batch.streams.states[0]
+    batch.learn(200)
+    differ = [i for i, d in enumerate(differences(batch, lone)) if d > 1e-4]
+    assert differ, f"{broken}: the seeds match their lone runs, so the test cannot see mixed streams"
+    if broken == "streams_swapped":
+        assert differ == [0, 1]
+
+
+def test_learn_goes_on_and_each_seed_is_a_full_model(tmp_path):
+    """learn() twice (reset_num_timesteps=False), per-seed callbacks, save and TD3X.load."""
+    make = factory()
+    lone = []
+    for seed in SEEDS:
+        model = make(seed)
+        model.learn(250)
+        model.learn(200, reset_num_timesteps=False)
+        lone.append(model)
+    batch = SeedBatch(make, SEEDS)
+    batch.learn(250)
+    calls = [[] for _ in SEEDS]
+
+    class Count(BaseCallback):
+        def __init__(self, i):
+            super().__init__()
+            self.i = i
+
+        def _on_step(self):
+            calls[self.i].append(self.model.num_timesteps)
+            return True
+
+    batch.learn(200, callback=[Count(i) for i in range(len(SEEDS))], reset_num_timesteps=False)
+    assert calls == [list(range(251, 451))] * len(SEEDS)
+    assert_same_runs(batch, lone)
+    paths = batch.save(tmp_path)
+    loaded = TD3X.load(paths[1])
+    for a, b in zip(batch[1].policy.state_dict().values(), loaded.policy.state_dict().values()):
+        assert th.equal(a, b)
+
+
+def test_per_seed_evaluations_equal_the_lone_runs():
+    """An EvalCallback per seed (evaluation inside collection, on its own env) sees what the lone run sees."""
+    make = factory()
+
+    def evaluation(seed):
+        return EvalCallback(
+            factory()(seed).get_env(), eval_freq=150, n_eval_episodes=1, verbose=0, warn=False
+        )
+
+    lone_evals = []
+    for seed in SEEDS:
+        model = make(seed)
+        callback = evaluation(seed)
+        model.learn(300, callback=callback)
+        lone_evals.append(callback.evaluations_results)
+    callbacks = [evaluation(seed) for seed in SEEDS]
+    SeedBatch(make, SEEDS).learn(300, callback=callbacks)
+    assert [cb.evaluations_results for cb in callbacks] == lone_evals
+
+
+def test_sb3_td3_runs_per_seed_and_matches():
+    def make(seed):
+        return TD3("MlpPolicy", "Pendulum-v1", learning_starts=100, batch_size=32, policy_kwargs={"net_arch": [16]}, seed=seed)
+
+    lone = [make(seed).learn(200) for seed in SEEDS[:2]]
+    batch = SeedBatch(make, SEEDS[:2]).learn(200)
+    assert batch.update_path == "per_seed" and "model 0 is a TD3" in batch.update_reason
+    assert_same_runs(batch, lone)
+
+
+def test_a_failing_seed_stops_alone_with_keep_going():
+    class Fail(BaseCallback):
+        def _on_step(self):
+            if self.num_timesteps == 150:
+                raise RuntimeError("seed 1 broke")
+            return True
+
+    make = factory()
+    batch = SeedBatch(make, SEEDS)
+    with pytest.raises(RuntimeError, match="seed 1 broke"):
+        batch.learn(200, callback=[None, Fail(), None])
+    batch = SeedBatch(make, SEEDS)
+    batch.learn(200, callback=[None, Fail(), None], keep_going=True)
+    assert list(batch.errors) == [1] and [m.num_timesteps for m in batch] == [200, 150, 200]
+    # The other two go on per seed after seed 1 stops (2 of 3 seeds train each round) and still compute their lone runs.
+    assert_same_runs([batch[0], batch[2]], [make(0).learn(200), make(2).learn(200)])
+
+
+def test_bad_input_is_refused_with_a_clear_message():
+    make = factory()
+    with pytest.raises(ValueError, match="repeat a seed"):
+        SeedBatch(make, [0, 0])
+    with pytest.raises(ValueError, match="no seeds"):
+        SeedBatch(make, [])
+    with pytest.raises(TypeError, match="returned int, not a model"):
+        SeedBatch(lambda seed: seed, [0])
+    batch = SeedBatch(make, SEEDS[:2])
+    with pytest.raises(TypeError, match="give one per seed"):
+        batch.learn(10, callback=EvalCallback(make(0).get_env()))
+    with pytest.raises(ValueError, match="3 callbacks for 2 seeds"):
+        batch.learn(10, callback=[None, None, None])
+    shared = EvalCallback(make(0).get_env())
+    with pytest.raises(ValueError, match="given to two seeds"):
+        batch.learn(10, callback=[shared, [shared]])
+    model = make(0)
+    with pytest.raises(ValueError, match="a model is given twice"):
+        SeedBatch.from_models([model, model], [GlobalRandomState.capture()] * 2, seeds=[0, 1])
