@@ -6,6 +6,14 @@ trial (``user_attrs``, secrets masked) before training starts, so every trial, f
 hand::
 
     python run.py <the trial's overrides>
+
+With ``seeds_per_trial: K`` above 1, trial ``n`` trains the K seeds ``sweep seed + n*K + j`` (``j < K``) together in
+its process: its overrides say ``seed=<the first>`` and ``seeds=[...]``, each seed writes its run folder
+``trial_NNNN/seed<s>``, the pruner sees the seeds' aggregate (``seeds_aggregate``) at every evaluation, and the
+trial's value is the aggregate. The trial's user attributes add ``seeds``, ``seeds_aggregate``, ``seed_values``
+(``{"<seed>": mean return}``, each seed's latest evaluation: its final one when the trial completes) and
+``seed_values_step`` (the step of those evaluations). An interrupted trial resumes with
+``resume=trial_NNNN/seed<first seed>``, which resumes all its seeds.
 """
 
 from __future__ import annotations
@@ -23,10 +31,11 @@ from omegaconf import DictConfig
 
 from sb3_td3x.common.redaction import redact
 from sb3_td3x.sweeps.errors import SweepSpecError
-from sb3_td3x.sweeps.spec import SweepSpec
+from sb3_td3x.sweeps.spec import SweepSpec, override_value
 
 #: ``run_experiment(cfg, report)``: trains, calls ``report(num_timesteps, mean_return)`` after every evaluation,
-#: returns the final evaluation's mean return.
+#: returns the final evaluation's mean return. A trial of several seeds also passes ``seeds_aggregate`` and
+#: ``report_seeds(num_timesteps, {seed: mean_return})``; ``report`` then gets the seeds' aggregate, as does the return.
 TrainFn = Callable[..., float]
 
 DEFAULT_CONFIG_DIR = Path(__file__).resolve().parents[2] / "conf"
@@ -37,6 +46,9 @@ TRIAL_DEFAULTS = ["progress_bar=false"]
 #: User attribute of a trial stopped cleanly by Ctrl-C/SIGTERM; its queued copy inherits it and resumes the run.
 RESUMABLE = "resumable"
 
+#: User attributes of a trial of several seeds that its run writes: each seed's latest evaluation and its step.
+SEED_VALUES, SEED_VALUES_STEP = "seed_values", "seed_values_step"
+
 
 def compose_config(config_dir: Path, overrides: list[str]) -> DictConfig:
     """Compose ``conf/config.yaml`` with ``overrides``, as ``python run.py <overrides>`` does."""
@@ -46,6 +58,20 @@ def compose_config(config_dir: Path, overrides: list[str]) -> DictConfig:
 
     with initialize_config_dir(config_dir=str(config_dir.resolve()), version_base="1.3", job_name="sweep"):
         return compose("config", overrides=overrides)
+
+
+def seed_overrides(seeds: list[int], run_dir: Path, resume: bool = False) -> list[str]:
+    """A trial's own overrides: its seed (and ``seeds=[...]`` for several), its folder, and ``resume`` for the copy
+    of an interrupted trial (several seeds resume from the first seed's folder)."""
+    if len(seeds) == 1:
+        return [f"seed={seeds[0]}", f"run_dir={run_dir}"] + ([f"resume={run_dir}"] if resume else [])
+    own = [f"seed={seeds[0]}", f"seeds={override_value(seeds)}", f"run_dir={run_dir}"]
+    return own + ([f"resume={seed_run_dir(run_dir, seeds[0])}"] if resume else [])
+
+
+def seed_run_dir(run_dir: Path, seed: int) -> Path:
+    """The folder of one seed of a trial of several seeds (the runner's layout for ``seeds=[...]``)."""
+    return run_dir / f"seed{seed}"
 
 
 def override_key(override: str) -> str:
@@ -73,16 +99,17 @@ def check_composes(spec: SweepSpec, config_dir: Path, extra_overrides: list[str]
         raise SweepSpecError(
             f"{spec.source}: {', '.join(clash)} is both searched (search_space) and fixed (the overrides of the file or the command line); remove one of the two"
         )
-    for reserved in ("seed", "run_dir", "resume"):
+    for reserved in ("seed", "seeds", "run_dir", "resume"):
         if reserved in spec.searched_paths or reserved in fixed_keys:
             raise SweepSpecError(
                 f"{spec.source}: {reserved} is set by the sweep for every trial (seed = sweep seed + trial number, "
-                f"run_dir = the trial's folder, resume = an interrupted trial's folder); remove it from the "
-                "overrides/search_space"
+                f"seeds = seeds_per_trial seeds from there, run_dir = the trial's folder, resume = an interrupted "
+                "trial's folder); remove it from the overrides/search_space (set seeds_per_trial for several seeds)"
             )
     example = [p.override(p.example_value()) for p in spec.params]
+    own = seed_overrides(spec.trial_seeds(0), Path("/tmp/sweep-check"))
     try:
-        cfg = compose_config(config_dir, fixed + example + TRIAL_DEFAULTS + ["run_dir=/tmp/sweep-check"])
+        cfg = compose_config(config_dir, fixed + example + TRIAL_DEFAULTS + own)
         check_config(cfg)
     except (HydraException, OmegaConfBaseException, ConfigError) as err:
         message = str(err).strip().splitlines()
@@ -127,13 +154,9 @@ class TrialObjective:
         self.study_dir = study_dir
         self.train_fn = train_fn
 
-    def overrides(self, values: dict[str, Any], seed: int, run_dir: Path, resume: bool = False) -> list[str]:
+    def overrides(self, values: dict[str, Any], seeds: list[int], run_dir: Path, resume: bool = False) -> list[str]:
         searched = [param.override(values[param.path]) for param in self.spec.params]
-        own = [f"seed={seed}", f"run_dir={run_dir}"] + ([f"resume={run_dir}"] if resume else [])
-        return self.spec.overrides + self.extra_overrides + searched + TRIAL_DEFAULTS + own
-
-    def trial_seed(self, number: int) -> int:
-        return self.spec.seed + number
+        return self.spec.overrides + self.extra_overrides + searched + TRIAL_DEFAULTS + seed_overrides(seeds, run_dir, resume)
 
     def run_dir(self, number: int) -> Path:
         return (self.study_dir / f"trial_{number:04d}").resolve()
@@ -144,19 +167,24 @@ class TrialObjective:
         values = {param.path: param.suggest(trial) for param in self.spec.params}
         resume_dir = self._resumable_run_dir(trial)
         if resume_dir is not None:  # the queued copy of a trial stopped by Ctrl-C/SIGTERM: continue its run
-            seed, run_dir = int(trial.user_attrs["seed"]), resume_dir
+            seeds, run_dir = self._recorded_seeds(trial), resume_dir
         else:
-            seed, run_dir = self.trial_seed(trial.number), self.run_dir(trial.number)
-        overrides = self.overrides(values, seed, run_dir, resume=resume_dir is not None)
-        for inherited in ("fail_reason", "prune_reason", RESUMABLE):  # a queued copy inherits its original's
+            seeds, run_dir = self.spec.trial_seeds(trial.number), self.run_dir(trial.number)
+        overrides = self.overrides(values, seeds, run_dir, resume=resume_dir is not None)
+        # a queued copy inherits its original's attributes; these describe how the original ended
+        for inherited in ("fail_reason", "prune_reason", RESUMABLE, SEED_VALUES, SEED_VALUES_STEP):
             if trial.user_attrs.get(inherited) is not None:
                 trial.set_user_attr(inherited, None)
         trial.set_user_attr("overrides", redact(overrides))  # secrets masked: the study is a record too
-        trial.set_user_attr("seed", seed)
+        trial.set_user_attr("seed", seeds[0])
+        if len(seeds) > 1:
+            trial.set_user_attr("seeds", seeds)
+            trial.set_user_attr("seeds_aggregate", self.spec.seeds_aggregate)
         trial.set_user_attr("run_dir", str(run_dir))
         trial.set_user_attr("worker", f"{socket.gethostname()}:{os.getpid()}")
 
         evaluations: list[float] = []
+        what = "mean return" if len(seeds) == 1 else f"{self.spec.seeds_aggregate} return of seeds {seeds}"
 
         def report(num_timesteps: int, mean_return: float) -> None:
             evaluations.append(mean_return)
@@ -164,14 +192,22 @@ class TrialObjective:
             if trial.should_prune():
                 raise optuna.TrialPruned(
                     f"pruned by {type(trial.study.pruner).__name__} at step {num_timesteps} "
-                    f"(evaluation mean return {mean_return:.2f})"
+                    f"(evaluation {what} {mean_return:.2f})"
                 )
 
+        seed_values: dict[str, float] = {}
+
+        def report_seeds(num_timesteps: int, returns: dict[int, float]) -> None:
+            seed_values.update({str(seed): float(value) for seed, value in returns.items()})  # JSON keys are text
+            trial.set_user_attr(SEED_VALUES, dict(sorted(seed_values.items(), key=lambda item: int(item[0]))))
+            trial.set_user_attr(SEED_VALUES_STEP, int(num_timesteps))
+
+        seed_options = {} if len(seeds) == 1 else {"seeds_aggregate": self.spec.seeds_aggregate, "report_seeds": report_seeds}
         try:
             cfg = compose_config(self.config_dir, overrides)
             if cfg.torch_threads is None:  # workers may share a machine: one thread each unless the spec says
                 cfg.torch_threads = 1
-            final_return = self.train(cfg, report)
+            final_return = self.train(cfg, report, **seed_options)
         except optuna.TrialPruned as pruned:
             return TrialResult(optuna.trial.TrialState.PRUNED, reason=str(pruned))
         except TrainingDiverged as err:
@@ -192,28 +228,39 @@ class TrialObjective:
         return TrialResult(optuna.trial.TrialState.COMPLETE, value=float(value))
 
     @staticmethod
-    def _resumable_run_dir(trial: optuna.Trial) -> Path | None:
+    def _recorded_seeds(trial: optuna.Trial) -> list[int]:
+        """The seeds the original of a queued copy trained (its ``seeds``, or its one ``seed``)."""
+        if trial.user_attrs.get("seeds") is not None:
+            return [int(seed) for seed in trial.user_attrs["seeds"]]
+        return [int(trial.user_attrs["seed"])]
+
+    @classmethod
+    def _resumable_run_dir(cls, trial: optuna.Trial) -> Path | None:
         """The run folder to resume: set when this trial is the queued copy of one that stopped cleanly on
-        Ctrl-C/SIGTERM and left a complete checkpoint. A copy of a trial failed by the heartbeat starts afresh in
-        its own folder instead, since its first worker may still be writing to the old one."""
+        Ctrl-C/SIGTERM and left a complete checkpoint (of its first seed, for several). A copy of a trial failed by
+        the heartbeat starts afresh in its own folder instead, since its first worker may still be writing to the
+        old one."""
         from sb3_td3x.experiment.checkpoints import resume_checkpoint
         from sb3_td3x.experiment.errors import ConfigError
 
         if not trial.user_attrs.get(RESUMABLE):
             return None
         run_dir = Path(trial.user_attrs["run_dir"])
+        seeds = cls._recorded_seeds(trial)
         try:
-            resume_checkpoint(run_dir)
+            resume_checkpoint(run_dir if len(seeds) == 1 else seed_run_dir(run_dir, seeds[0]))
         except ConfigError:  # stopped before its first checkpoint: start again
             return None
         return run_dir
 
-    def train(self, cfg: DictConfig, report: Callable[[int, float], None]) -> float:
+    def train(self, cfg: DictConfig, report: Callable[[int, float], None], **seed_options: Any) -> float:
+        """Train ``cfg``; ``seed_options`` (``seeds_aggregate``, ``report_seeds``) only for a trial of several seeds,
+        so that a one-seed trial calls the training function exactly as before."""
         if self.train_fn is None:
             from sb3_td3x.experiment.runner import run_experiment
 
             self.train_fn = run_experiment
-        return self.train_fn(cfg, report=report)
+        return self.train_fn(cfg, report=report, **seed_options)
 
     @staticmethod
     def _write_traceback(run_dir: Path) -> None:

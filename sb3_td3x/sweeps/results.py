@@ -3,6 +3,7 @@
 ``<study folder>/``
 
 * ``summary.txt``: trial counts by state, the best trial, the top trials, and why trials failed or were pruned;
+  with ``seeds_per_trial`` above 1, the best trial's line and the top trials give each seed's final return;
 * ``trials.csv``: every trial with its parameters, value, state, seed, run folder and reasons;
 * ``best_overrides.txt``: the best trial's Hydra overrides, one a line: ``python run.py $(cat best_overrides.txt)``;
 * ``tuned/best.yaml``: the same as a config: ``python run.py -cd <study folder> +tuned=best``;
@@ -27,7 +28,7 @@ from omegaconf import OmegaConf
 from optuna.trial import FrozenTrial, TrialState
 
 from sb3_td3x.common.redaction import redact
-from sb3_td3x.sweeps.objective import TRIAL_DEFAULTS
+from sb3_td3x.sweeps.objective import SEED_VALUES, TRIAL_DEFAULTS
 
 logger = logging.getLogger(__name__)
 
@@ -110,7 +111,7 @@ def summary_text(
         best = study.best_trial
         lines += [
             (
-                f"best: trial {best.number}, {metric} = {best.value:.3f}, seed {best.user_attrs.get('seed')}, "
+                f"best: trial {best.number}, {metric} = {best.value:.3f}, {_seeds_text(best)}, "
                 f"run folder {best.user_attrs.get('run_dir')}"
             ),
             "",
@@ -131,10 +132,32 @@ def summary_text(
     return redact("\n".join(lines) + "\n")
 
 
+def _seeds_text(trial: FrozenTrial) -> str:
+    """``seed 3``; for a trial of several seeds ``mean of 2 seeds: 4 -1210.52, 5 -1302.10`` (each one's final return)."""
+    seeds = trial.user_attrs.get("seeds")
+    if seeds is None:
+        return f"seed {trial.user_attrs.get('seed')}"
+    aggregate = trial.user_attrs.get("seeds_aggregate", "mean")
+    return f"{aggregate} of {len(seeds)} seeds: " + ", ".join(f"{seed} {value}" for seed, value in _seed_finals(trial))
+
+
+def _seed_finals(trial: FrozenTrial) -> list[tuple[int, str]]:
+    values = trial.user_attrs.get(SEED_VALUES) or {}
+    return [(seed, f"{values[str(seed)]:.2f}" if str(seed) in values else "?") for seed in trial.user_attrs["seeds"]]
+
+
 def _table(trials: list[FrozenTrial]) -> str:
     import pandas as pd
 
-    rows = [{"trial": t.number, "value": round(t.value, 3), **t.params, "seed": t.user_attrs.get("seed")} for t in trials]
+    rows = []
+    for t in trials:
+        row = {"trial": t.number, "value": round(t.value, 3), **t.params}
+        if t.user_attrs.get("seeds") is None:
+            row["seed"] = t.user_attrs.get("seed")
+        else:  # several seeds: which, and each one's final return
+            row["seeds"] = ",".join(str(seed) for seed in t.user_attrs["seeds"])
+            row["per seed"] = " ".join(value for _, value in _seed_finals(t))
+        rows.append(row)
     return pd.DataFrame(rows).to_string(index=False, float_format=lambda v: f"{v:.4g}")
 
 

@@ -6,7 +6,9 @@ A sweep file (``sweeps/*.yaml``) reads::
     metric: eval/mean_return        # the final evaluation; or eval/best_mean_return
     direction: maximize
     n_trials: 40                     # trials the study holds in total, shared by every worker
-    seed: 0                          # trial k trains with seed + k
+    seed: 0                          # trial k trains with seed + k (seeds seed + k*K ... with seeds_per_trial K)
+    seeds_per_trial: 1               # K seeds trained together in each trial's process; default 1
+    seeds_aggregate: mean            # with K > 1: the trial's value over its seeds, mean or iqm
     storage: null                    # null: an SQLite file in the study folder
     overrides: [env=pendulum, total_timesteps=20000]   # fixed Hydra overrides, as run.py takes them
     sampler: {_target_: optuna.samplers.TPESampler, seed: 0, multivariate: true}
@@ -20,6 +22,14 @@ A sweep file (``sweeps/*.yaml``) reads::
 A parameter is a range (``low``/``high``, with ``log`` or ``step``; integers when both ends are integers, or say
 ``type: float``) or a list of ``choices``. A choice may be a list or a mapping (``net_arch``); Optuna stores such a
 choice as its Hydra override text (``"[64,64]"``), so that the dashboard and the best-parameters file show it.
+
+``seeds_per_trial: K`` (an integer, at least 1; default 1) trains K seeds in every trial, together in the trial's
+process (the runner's ``seeds=[...]``). Trial ``n`` trains seeds ``seed + n*K + j`` for ``j < K``, so that no two
+trials share a seed and a trial's seeds follow from its number alone; with K = 1 that is ``seed + n``, as without
+the field. At every evaluation the pruner sees the aggregate over the K seeds; the trial's value is the aggregate
+of their final evaluations (for ``eval/best_mean_return``: the best aggregated evaluation). ``seeds_aggregate``
+picks the aggregate: ``mean`` (default) or ``iqm``, the interquartile mean of
+:func:`sb3_td3x.experiment.aggregate.iqm` (the mean of the middle half; for K < 4 it is the mean).
 """
 
 from __future__ import annotations
@@ -48,6 +58,8 @@ _RANGE_KEYS = {"low", "high", "log", "step", "type"}
 _CHOICE_KEYS = {"choices", "type"}
 _TYPES = {"float", "int", "categorical"}
 _BARE_STRING = re.compile(r"^[A-Za-z_][\w\-./]*$")
+#: How a trial of several seeds turns their evaluations into one value (``sb3_td3x.experiment.aggregate.STATISTICS``).
+SEEDS_AGGREGATES = ("mean", "iqm")
 
 
 @dataclass
@@ -59,6 +71,8 @@ class SweepFileSchema:
     direction: str = MISSING
     n_trials: int = MISSING
     seed: int = 0
+    seeds_per_trial: int = 1
+    seeds_aggregate: str = "mean"
     storage: str | None = None
     overrides: list[str] = field(default_factory=list)
     sampler: dict[str, Any] = MISSING
@@ -139,6 +153,13 @@ class SweepSpec:
     sampler: dict[str, Any]
     pruner: dict[str, Any]
     params: list[ParamSpec]
+    seeds_per_trial: int = 1  #: seeds trained together in each trial
+    seeds_aggregate: str = "mean"  #: how their evaluations become the trial's: ``mean`` or ``iqm``
+
+    def trial_seeds(self, number: int) -> list[int]:
+        """The seeds of trial ``number``: ``seed + number*K + j`` for ``j < K`` (``[seed + number]`` for K = 1)."""
+        first = self.seed + number * self.seeds_per_trial
+        return list(range(first, first + self.seeds_per_trial))
 
     def make_sampler(self, seed_offset: int = 0) -> optuna.samplers.BaseSampler:
         """Build the sampler; a seeded sampler gets ``seed + seed_offset`` so that workers do not draw alike."""
@@ -255,6 +276,7 @@ def load_sweep(path: str | Path) -> SweepSpec:
             f"{source}: overrides must be a list of Hydra overrides such as [env=hopper, total_timesteps=300000]"
         )
     loaded.overrides = []
+    _check_seeds_fields(OmegaConf.to_container(loaded, resolve=False), source)
     try:
         config = OmegaConf.merge(OmegaConf.structured(SweepFileSchema), loaded)
         missing = sorted(OmegaConf.missing_keys(config))
@@ -290,10 +312,28 @@ def load_sweep(path: str | Path) -> SweepSpec:
         sampler=data["sampler"],
         pruner=data["pruner"],
         params=params,
+        seeds_per_trial=data["seeds_per_trial"],
+        seeds_aggregate=data["seeds_aggregate"],
     )
     spec.make_sampler()  # build both once so that a bad _target_ or argument is reported now, not in a trial
     spec.make_pruner()
     return spec
+
+
+def _check_seeds_fields(raw: dict[str, Any], source: Path) -> None:
+    """``seeds_per_trial`` and ``seeds_aggregate`` as written (before OmegaConf converts ``"2"`` or ``3``)."""
+    k = raw.get("seeds_per_trial", 1)
+    if isinstance(k, bool) or not isinstance(k, int) or k < 1:
+        raise SweepSpecError(
+            f"{source}: seeds_per_trial must be an integer of at least 1 (the seeds each trial trains together; "
+            f"1 trains one seed per trial), not {k!r}"
+        )
+    aggregate = raw.get("seeds_aggregate", "mean")
+    if aggregate not in SEEDS_AGGREGATES:
+        raise SweepSpecError(
+            f"{source}: seeds_aggregate must be one of {', '.join(SEEDS_AGGREGATES)} (how a trial's seeds make its "
+            f"value), not {aggregate!r}"
+        )
 
 
 def _omegaconf_message(err: OmegaConfBaseException) -> str:
