@@ -1,0 +1,97 @@
+"""benchmarks/seeds_scaling.py without training: bad arguments get a message, the plan always holds one SB3
+process, the processes share the cores, and a measurement combines its processes' windows as its docstring says."""
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import pytest
+import torch as th
+
+_PATH = Path(__file__).resolve().parents[2] / "benchmarks" / "seeds_scaling.py"
+
+
+@pytest.fixture(scope="module")
+def scaling():
+    spec = importlib.util.spec_from_file_location("seeds_scaling", _PATH)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # its dataclass looks its module up while it is built
+    try:
+        spec.loader.exec_module(module)
+        yield module
+    finally:
+        del sys.modules[spec.name]
+
+
+_BAD = [
+    (["--seeds", "0", "2"], "each N must be at least 1"),
+    (["--seeds", "2", "2"], "an N is given twice"),
+    (["--env", "Hopper-v0"], "no gymnasium environment 'Hopper-v0'"),
+    (["--env", "CartPole-v1"], "continuous (Box) actions"),
+    (["--steps", "0"], "--steps must be at least 1"),
+    (["--warmup", "0"], "--warmup must be at least 1"),
+    (["--modes", "lone"], "invalid choice: 'lone'"),
+    (["--learning-starts", "-1"], "--learning-starts must be at least 0"),
+]
+if not th.cuda.is_available():
+    _BAD.append((["--device", "cuda"], "torch sees no CUDA device here"))  # SB3's get_device would fall back to CPU
+
+
+@pytest.mark.parametrize("argv, message", _BAD)
+def test_bad_arguments_get_a_message_not_a_traceback(scaling, capsys, argv, message):
+    with pytest.raises(SystemExit) as exit_info:
+        scaling.parse_arguments(argv)
+    assert exit_info.value.code == 2
+    assert message in capsys.readouterr().err
+
+
+def test_the_defaults_are_the_issues_cpu_setting(scaling):
+    args = scaling.parse_arguments(["--modes", "batched", "batched", "sb3_procs"])
+    assert args.seeds == [1, 2, 4, 8] and args.net == [400, 300] and args.batch_size == 100
+    assert args.modes == ["batched", "sb3_procs"]
+    assert args.device in ("cpu", "cuda")  # "auto" resolved, as SB3 resolves it
+
+
+def test_one_sb3_process_is_always_measured_first_when_the_plan_lacks_it(scaling):
+    assert scaling.plan(["batched", "td3x_procs"], [2, 4]) == [
+        ("sb3_procs", 1),
+        ("batched", 2),
+        ("td3x_procs", 2),
+        ("batched", 4),
+        ("td3x_procs", 4),
+    ]
+    full = scaling.plan(list(scaling.MODES), [1, 16])
+    assert full.count(("sb3_procs", 1)) == 1 and full[:3] == [(mode, 1) for mode in scaling.MODES]
+
+
+@pytest.mark.parametrize(
+    "mode, n_seeds, cores, threads",
+    [("batched", 8, 2, 2), ("td3x_procs", 1, 2, 2), ("td3x_procs", 2, 2, 1), ("sb3_procs", 8, 2, 1), ("sb3_procs", 4, 16, 4)],
+)
+def test_the_batch_gets_every_core_and_the_processes_share_them(scaling, mode, n_seeds, cores, threads):
+    assert scaling.threads_for(mode, n_seeds, cores) == threads
+
+
+def test_a_measurement_sums_its_processes_rates_and_reports_the_overlap_of_their_windows(scaling):
+    records = [
+        {"seeds": [0], "steps": 100, "seconds": 10.0, "steps_per_s": 10.0, "start": 0.0, "end": 10.0, "update_path": "mlp"},
+        {"seeds": [1], "steps": 100, "seconds": 20.0, "steps_per_s": 5.0, "start": 0.5, "end": 20.5, "update_path": "mlp"},
+    ]
+    m = scaling.combine("td3x_procs", 2, 1, records)
+    assert m["seed_steps_per_s"] == 15.0
+    assert m["seed_steps_per_s_over_span"] == pytest.approx(200 / 20.5)
+    assert m["overlap"] == pytest.approx(9.5 / 20.5)
+    assert m["update_path"] == "mlp" and m["processes"] == 2
+
+
+def test_ratios_are_taken_at_the_same_n_and_against_one_sb3_process(scaling):
+    measurements = [
+        {"mode": mode, "n_seeds": n, "processes": 1, "threads_per_process": 2, "seed_steps_per_s": rate, "update_path": None}
+        for mode, n, rate in [("sb3_procs", 1, 100.0), ("batched", 1, 110.0), ("batched", 4, 600.0), ("td3x_procs", 4, 400.0)]
+    ]
+    rows = scaling.summarize(measurements + [{**measurements[2], "seed_steps_per_s": 800.0}])  # a second repeat
+    assert rows[("batched", 4)]["seed_steps_per_s"] == 700.0  # the median of the repeats
+    assert scaling.ratios(rows, [1, 4]) == [
+        {"n_seeds": 1, "batched_over_td3x_procs": None, "batched_over_sb3_procs": 1.1, "batched_over_one_sb3_process": 1.1},
+        {"n_seeds": 4, "batched_over_td3x_procs": 1.75, "batched_over_sb3_procs": None, "batched_over_one_sb3_process": 7.0},
+    ]
