@@ -1,7 +1,8 @@
 """Train TD3X on a gymnasium environment: ``python run.py algo=td3 env=ant``.
 
 With no overrides it trains TD3 on Pendulum-v1 for 10k steps (a couple of minutes on 2 CPU cores).
-Several seeds in parallel: ``python run.py -m seed=0,1,2,3,4``; continue a stopped run: ``python run.py resume=<run folder>``.
+Several seeds in one process, trained together: ``python run.py seeds=[0,1,2,3,4]``; in parallel processes:
+``python run.py -m seed=0,1,2,3,4``; continue a stopped run: ``python run.py resume=<run folder>``.
 See docs/experiments.md.
 """
 
@@ -12,7 +13,7 @@ import hydra
 from omegaconf import DictConfig
 
 from sb3_td3x.common.redaction import redact_log_records
-from sb3_td3x.experiment.cli import check_command_line
+from sb3_td3x.experiment.cli import check_command_line, first_seed_override
 from sb3_td3x.experiment.cli import main as run_main
 from sb3_td3x.experiment.schemas import integer_overrides
 
@@ -29,4 +30,6 @@ if __name__ == "__main__":
     check_command_line(sys.argv[1:], CONF_DIR)
     # total_timesteps=1e6: a whole float given to an integer field becomes an integer before Hydra reads the line.
     sys.argv[1:] = integer_overrides(sys.argv[1:])
+    # seeds=[0,1,2]: Hydra makes the first seed's folder; the others are named alike (cli.seed_folders).
+    sys.argv[1:] = first_seed_override(sys.argv[1:])
     main()

@@ -276,7 +276,8 @@ class ProgressBar(BaseCallback):
 
 
 class StopOnSignal:
-    """While active, SIGINT and SIGTERM ask ``checkpointer`` to save and stop instead of killing the process.
+    """While active, SIGINT and SIGTERM ask the checkpointers (one per seed of a batch) to save and stop instead of
+    killing the process.
 
     The first signal restores the previous handlers, so a second Ctrl+C stops at once (the last periodic
     checkpoint is still there). Outside the main thread (Hydra's joblib launcher uses worker processes, whose
@@ -285,8 +286,8 @@ class StopOnSignal:
 
     SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
-    def __init__(self, checkpointer: Checkpointer) -> None:
-        self.checkpointer = checkpointer
+    def __init__(self, *checkpointers: Checkpointer) -> None:
+        self.checkpointers = checkpointers  # one per seed in a seed batch
         self.previous: dict[int, Any] = {}
 
     def __enter__(self) -> StopOnSignal:
@@ -296,7 +297,8 @@ class StopOnSignal:
 
     def _handle(self, signum: int, frame: Any) -> None:
         self._restore()
-        self.checkpointer.request_stop(signal.Signals(signum).name, 128 + signum)
+        for checkpointer in self.checkpointers:
+            checkpointer.request_stop(signal.Signals(signum).name, 128 + signum)
 
     def _restore(self) -> None:
         for sig, handler in self.previous.items():

@@ -15,16 +15,20 @@ import subprocess
 import sys
 import time
 from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
+import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
 from sb3_td3x.common.redaction import redact
 from sb3_td3x.experiment.algos import algorithm_class, build_algorithm
 from sb3_td3x.experiment.callbacks import Checkpointer, DivergenceCheck, PeriodicEvaluation, ProgressBar, StopOnSignal
-from sb3_td3x.experiment.checkpoints import load_checkpoint, resume_checkpoint
+from sb3_td3x.experiment.checkpoints import LAST, checkpoint_dir, find_checkpoint, load_checkpoint, resume_checkpoint
 from sb3_td3x.experiment.envs import make_eval_env, make_train_env
+from sb3_td3x.experiment.errors import ConfigError, TrainingDiverged, TrainingInterrupted
 from sb3_td3x.experiment.loggers import build_logger, start_wandb
 from sb3_td3x.experiment.plotting import LEARNING_CURVE_PNG, plot_learning_curve, record_video
 from sb3_td3x.experiment.schemas import check_config, public_config
@@ -34,21 +38,36 @@ log = logging.getLogger(__name__)
 CONFIG_FILE = "config.yaml"
 SUMMARY_FILE = "summary.json"
 PROVENANCE_FILE = "provenance.jsonl"
+RUN_LOG = "run.log"  # Hydra's job log (run.py), per seed in a batch
 
 
-def run_experiment(cfg: DictConfig, report: Callable[[int, float], None] | None = None) -> float:
+def run_experiment(
+    cfg: DictConfig,
+    report: Callable[[int, float], None] | None = None,
+    seeds_aggregate: str = "mean",
+    report_seeds: Callable[[int, dict[int, float]], None] | None = None,
+) -> float:
     """Train ``cfg.algo`` on ``cfg.env`` for ``cfg.total_timesteps`` steps and return the final evaluation mean return.
 
     Writes to the run folder (``cfg.run_dir``, or ``cfg.resume`` when set): ``config.yaml`` (resolved, without
     credentials), ``evaluations.csv``/``.json``, ``checkpoints/{last,best}``, ``tb/`` (TensorBoard), ``wandb/``,
     ``learning_curve.png``, ``summary.json`` and, with ``video=final``, ``video.gif``.
 
+    With ``cfg.seeds`` (``seeds=[0,1,2]``), the seeds train together in this process (:class:`~sb3_td3x.SeedBatch`),
+    each computing what its lone ``seed=`` run computes and writing the same run folder, at ``cfg.seed_run_dirs``
+    (``run.py`` sets them: ``runs/<env>/<algo>/seed<s>/<date>``) or else ``<run_dir>/seed<s>``. The return value is
+    then the ``seeds_aggregate`` ("mean" or "iqm") of the seeds' final mean returns.
+
     :param cfg: a config composed from ``conf/`` (``hydra.compose(config_name="config", overrides=[...])``)
     :param report: called as ``report(num_timesteps, mean_eval_return)`` after every evaluation, including the
-        final one; if it raises (e.g. ``optuna.TrialPruned``), a checkpoint is written, envs and loggers are closed
-        and the exception propagates unchanged
+        final one (with seeds: once every seed still training has evaluated at that step, with their aggregate); if
+        it raises (e.g. ``optuna.TrialPruned``), a checkpoint is written (of every seed), envs and loggers are
+        closed and the exception propagates unchanged
+    :param report_seeds: with seeds, called as ``report_seeds(num_timesteps, {seed: mean_return})`` before
+        ``report``
     :raises ConfigError: the config cannot be run (bad value, unknown id, missing checkpoint); nothing is trained
-    :raises TrainingDiverged: a training loss or an evaluation return became NaN or infinite
+    :raises TrainingDiverged: a training loss or an evaluation return became NaN or infinite (with seeds: of one
+        seed, after the others finished)
     :raises TrainingInterrupted: SIGINT or SIGTERM arrived; a checkpoint was written first
     """
     cfg = OmegaConf.create(OmegaConf.to_container(cfg, resolve=False))  # a private copy; the caller's cfg stays as is
@@ -56,27 +75,67 @@ def run_experiment(cfg: DictConfig, report: Callable[[int, float], None] | None 
         cfg.run_dir = str(cfg.resume)
     OmegaConf.resolve(cfg)  # pins ${now:...} and the env defaults once
     check_config(cfg)
-    run_dir = Path(cfg.run_dir)
-    resume_from = resume_checkpoint(run_dir) if cfg.resume is not None else None
-    run_dir.mkdir(parents=True, exist_ok=True)
-    config = public_config(cfg)
-    (run_dir / CONFIG_FILE).write_text(OmegaConf.to_yaml(OmegaConf.create(config)))
+    if seeds_aggregate not in SEED_STATISTICS:
+        raise ConfigError(f"seeds_aggregate={seeds_aggregate!r} must be one of {', '.join(SEED_STATISTICS)}")
     if cfg.torch_threads is not None:
         torch.set_num_threads(cfg.torch_threads)
+    if cfg.seeds is not None:
+        return _run_seeds(cfg, report, seeds_aggregate, report_seeds)
+    run = _prepare(cfg)
+    try:
+        if report is not None:
+            run.evaluation.listeners.append(_reporting(report, run.checkpointer))
+        if run.remaining > 0:
+            with StopOnSignal(run.checkpointer):
+                run.model.learn(
+                    total_timesteps=run.remaining,
+                    callback=run.callbacks,
+                    log_interval=cfg.logger.log_interval,
+                    reset_num_timesteps=run.resume_from is None,
+                )
+        return _finish(run)
+    finally:
+        _close(run)
 
+
+@dataclass
+class _Run:
+    """One seed's run, up to ``learn()``: what :func:`_finish` and :func:`_close` need."""
+
+    cfg: DictConfig
+    run_dir: Path
+    started: float
+    closers: list[Callable[[], object]] = field(default_factory=list)
+    resume_from: Path | None = None
+    model: Any = None
+    evaluation: PeriodicEvaluation | None = None
+    checkpointer: Checkpointer | None = None
+    progress: ProgressBar | None = None
+    callbacks: list[Any] = field(default_factory=list)
+    remaining: int = 0
+    run_name: str = ""
+    succeeded: bool = False
+
+
+def _prepare(cfg: DictConfig) -> _Run:
+    """Everything a run does before ``model.learn``: folder, config file, envs, model (built or loaded), loggers,
+    callbacks. On an error, what was opened is closed."""
+    run = _Run(cfg, Path(cfg.run_dir), time.time())
+    run.resume_from = resume_checkpoint(run.run_dir) if cfg.resume is not None else None
+    run.run_dir.mkdir(parents=True, exist_ok=True)
+    config = public_config(cfg)
+    (run.run_dir / CONFIG_FILE).write_text(OmegaConf.to_yaml(OmegaConf.create(config)))
     train_env = make_train_env(cfg.env, cfg.n_envs, cfg.seed)
     eval_env = make_eval_env(cfg.env)
-    closers: list[Callable[[], object]] = [train_env.close, eval_env.close]
-    evaluation: PeriodicEvaluation | None = None
-    succeeded = False
-    started = time.time()
+    run.closers += [train_env.close, eval_env.close]
     try:
-        if resume_from is None:
+        if run.resume_from is None:
             model = build_algorithm(cfg, train_env)
             experiment_state = None
         else:
-            model, experiment_state = load_checkpoint(resume_from, algorithm_class(cfg.algo), train_env, cfg.device)
-            log.info("Resuming %s at step %d from %s", run_dir, model.num_timesteps, resume_from)
+            model, experiment_state = load_checkpoint(run.resume_from, algorithm_class(cfg.algo), train_env, cfg.device)
+            log.info("Resuming %s at step %d from %s", run.run_dir, model.num_timesteps, run.resume_from)
+        run.model = model
         if cfg.algo.learning_starts >= cfg.total_timesteps:
             log.warning(
                 "algo.learning_starts=%d >= total_timesteps=%d: the whole run takes uniformly random actions and never "
@@ -85,24 +144,24 @@ def run_experiment(cfg: DictConfig, report: Callable[[int, float], None] | None 
                 cfg.total_timesteps,
             )
 
-        with open(run_dir / PROVENANCE_FILE, "a") as file:  # one line per session: a run may span several
+        with open(run.run_dir / PROVENANCE_FILE, "a") as file:  # one line per session: a run may span several
             record = {"started": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "at_step": int(model.num_timesteps), **provenance()}
             file.write(json.dumps(redact(record)) + "\n")
 
-        run_name = f"{cfg.env.name}_{cfg.algo.name}_seed{cfg.seed}"
-        wandb_run = start_wandb(cfg.logger.wandb, run_dir, run_name, config) if cfg.logger.wandb is not None else None
+        run.run_name = f"{cfg.env.name}_{cfg.algo.name}_seed{cfg.seed}"
+        wandb_run = start_wandb(cfg.logger.wandb, run.run_dir, run.run_name, config) if cfg.logger.wandb is not None else None
         if wandb_run is not None:
-            closers.append(lambda: wandb_run.finish(exit_code=0 if succeeded else 1))
-        logger = build_logger(cfg.logger, run_dir, wandb_run)
-        closers.insert(0, logger.close)
+            run.closers.append(lambda: wandb_run.finish(exit_code=0 if run.succeeded else 1))
+        logger = build_logger(cfg.logger, run.run_dir, wandb_run)
+        run.closers.insert(0, logger.close)
         model.set_logger(logger)
 
-        progress = ProgressBar(cfg.total_timesteps, run_name) if cfg.progress_bar else None
-        if progress is not None:
-            closers.insert(0, progress.close)
-        evaluation = PeriodicEvaluation(
+        run.progress = ProgressBar(cfg.total_timesteps, run.run_name) if cfg.progress_bar else None
+        if run.progress is not None:
+            run.closers.insert(0, run.progress.close)
+        evaluation = run.evaluation = PeriodicEvaluation(
             eval_env,
-            run_dir,
+            run.run_dir,
             cfg.eval.freq,
             cfg.eval.n_episodes,
             cfg.seed + cfg.eval.seed_offset,
@@ -110,8 +169,8 @@ def run_experiment(cfg: DictConfig, report: Callable[[int, float], None] | None 
             value_bias=cfg.eval.value_bias,
             value_horizon_tolerance=cfg.eval.value_horizon_tolerance,
         )
-        checkpointer = Checkpointer(
-            run_dir,
+        checkpointer = run.checkpointer = Checkpointer(
+            run.run_dir,
             cfg.checkpoint.freq,
             experiment_state=lambda: {"evaluation": evaluation.state_dict()},
             save_best=cfg.checkpoint.save_best,
@@ -121,11 +180,8 @@ def run_experiment(cfg: DictConfig, report: Callable[[int, float], None] | None 
             evaluation.load_state_dict(experiment_state["evaluation"])
             checkpointer.best_mean_return = evaluation.best_mean_return
         evaluation.listeners.append(checkpointer.on_evaluation)
-        if progress is not None:
-            evaluation.listeners.append(progress.on_evaluation)
-        if report is not None:
-            evaluation.listeners.append(_reporting(report, checkpointer))
-
+        if run.progress is not None:
+            evaluation.listeners.append(run.progress.on_evaluation)
         log.info(
             "Training %s (%s) on %s for %d steps, seed %d, device %s; run folder: %s",
             type(model).__name__,
@@ -134,64 +190,283 @@ def run_experiment(cfg: DictConfig, report: Callable[[int, float], None] | None 
             cfg.total_timesteps,
             cfg.seed,
             model.device,
-            run_dir,
+            run.run_dir,
         )
-        remaining = cfg.total_timesteps - model.num_timesteps
-        if remaining > 0:
-            callbacks = [DivergenceCheck(), evaluation, checkpointer] + ([progress] if progress is not None else [])
-            with StopOnSignal(checkpointer):
-                model.learn(
-                    total_timesteps=remaining,
-                    callback=callbacks,
-                    log_interval=cfg.logger.log_interval,
-                    reset_num_timesteps=resume_from is None,
-                )
-        if progress is not None:
-            progress.close()  # before the last log lines
-        if not evaluation.history:
-            raise RuntimeError("The run ended without any evaluation")  # learn() always evaluates at its end
-        final = evaluation.history[-1]
-        summary = {
-            "env_id": cfg.env.id,
-            "algo": cfg.algo.name,
-            "seed": cfg.seed,
-            "total_timesteps": int(final["timesteps"]),
-            "final_mean_return": final["mean_return"],
-            "final_std_return": final["std_return"],
-            "best_mean_return": evaluation.best_mean_return,
-            # How TD3X's update ran and why (sb3_td3x.td3x.update_paths.choose); None for SB3's TD3
-            "update_path": getattr(model, "update_path", None),
-            "update_reason": getattr(model, "update_reason", None),
-            "exploration_path": getattr(model, "exploration_path", None),
-            "wall_time_s_this_session": time.time() - started,
-            "provenance": provenance(),
-        }
-        (run_dir / SUMMARY_FILE).write_text(json.dumps(redact(summary), indent=2))
-        if cfg.video is not None:
-            path = record_video(
-                model, cfg.env, cfg.video, run_dir / f"video.{cfg.video.format}", cfg.seed + cfg.eval.seed_offset
-            )
-            log.info("Video of the final policy: %s", path)
-        log.info(
-            "Done: final evaluation %.2f ± %.2f at step %d (best %.2f). Run folder: %s",
-            final["mean_return"],
-            final["std_return"],
-            final["timesteps"],
-            evaluation.best_mean_return,
-            run_dir,
+        run.remaining = cfg.total_timesteps - model.num_timesteps
+        run.callbacks = [DivergenceCheck(), evaluation, checkpointer] + ([run.progress] if run.progress is not None else [])
+        return run
+    except BaseException:
+        _close(run)
+        raise
+
+
+def _finish(run: _Run) -> float:
+    """After ``learn``: ``summary.json``, the video, the last log line. Returns the final mean return."""
+    cfg, evaluation, model = run.cfg, run.evaluation, run.model
+    assert evaluation is not None
+    if run.progress is not None:
+        run.progress.close()  # before the last log lines
+    if not evaluation.history:
+        raise RuntimeError("The run ended without any evaluation")  # learn() always evaluates at its end
+    final = evaluation.history[-1]
+    summary = {
+        "env_id": cfg.env.id,
+        "algo": cfg.algo.name,
+        "seed": cfg.seed,
+        "total_timesteps": int(final["timesteps"]),
+        "final_mean_return": final["mean_return"],
+        "final_std_return": final["std_return"],
+        "best_mean_return": evaluation.best_mean_return,
+        # How TD3X's update ran and why (sb3_td3x.td3x.update_paths.choose, or the seed batch's); None for SB3's TD3
+        "update_path": getattr(model, "update_path", None),
+        "update_reason": getattr(model, "update_reason", None),
+        "exploration_path": getattr(model, "exploration_path", None),
+        "wall_time_s_this_session": time.time() - run.started,
+        "provenance": provenance(),
+    }
+    if cfg.seeds is not None:
+        summary["trained_with_seeds"] = list(cfg.seeds)  # one process, sb3_td3x.SeedBatch
+    (run.run_dir / SUMMARY_FILE).write_text(json.dumps(redact(summary), indent=2))
+    if cfg.video is not None:
+        path = record_video(
+            model, cfg.env, cfg.video, run.run_dir / f"video.{cfg.video.format}", cfg.seed + cfg.eval.seed_offset
         )
-        succeeded = True
-        return float(final["mean_return"])
-    finally:
-        for close in closers:
+        log.info("Video of the final policy: %s", path)
+    log.info(
+        "Done: final evaluation %.2f ± %.2f at step %d (best %.2f). Run folder: %s",
+        final["mean_return"],
+        final["std_return"],
+        final["timesteps"],
+        evaluation.best_mean_return,
+        run.run_dir,
+    )
+    run.succeeded = True
+    return float(final["mean_return"])
+
+
+def _close(run: _Run) -> None:
+    for close in run.closers:
+        try:
+            close()
+        except Exception as error:  # a failing close must not hide the exception that ended the run
+            log.warning("Closing %s failed: %s", close, error)
+    run.closers = []
+    if run.evaluation is not None and run.evaluation.history:
+        plot_learning_curve(
+            run.evaluation.history,
+            run.run_dir / LEARNING_CURVE_PNG,
+            f"{run.cfg.algo.name} on {run.cfg.env.id}, seed {run.cfg.seed}",
+        )
+
+
+# Many seeds in one process ------------------------------------------------------------------------------------------
+SEED_STATISTICS = ("mean", "iqm")
+
+
+def seed_run_dirs(cfg: DictConfig) -> list[Path]:
+    """The run folder of each of ``cfg.seeds``: ``cfg.seed_run_dirs`` when set (``run.py``), else
+    ``<run_dir>/seed<s>``."""
+    if cfg.seed_run_dirs is not None:
+        return [Path(d) for d in cfg.seed_run_dirs]
+    return [Path(cfg.run_dir) / f"seed{seed}" for seed in cfg.seeds]
+
+
+def _seed_statistic(name: str, values: list[float]) -> float:
+    from sb3_td3x.experiment.aggregate import STATISTICS  # aggregate imports this module
+
+    return float(STATISTICS[name](np.asarray(values, dtype=float)))
+
+
+class _SeedReports:
+    """The evaluations of a batch's seeds, step by step: ``report`` gets their aggregate once every seed still
+    training has evaluated at a step. When ``report`` raises, every seed is asked to stop: each checkpoints at its
+    next rollout boundary, with its own random state (as a signal would), and the exception is kept for the caller."""
+
+    def __init__(
+        self,
+        seeds: list[int],
+        runs: list[_Run],
+        statistic: str,
+        report: Callable[[int, float], None] | None,
+        report_seeds: Callable[[int, dict[int, float]], None] | None,
+    ) -> None:
+        self.seeds, self.runs, self.statistic = seeds, runs, statistic
+        self.report, self.report_seeds = report, report_seeds
+        self.pending: dict[int, dict[int, float]] = {}
+        self.training: set[int] = set()
+        self.error: BaseException | None = None
+
+    def listener(self, index: int) -> Callable[[dict[str, float]], None]:
+        return lambda result: self.on_result(index, result)
+
+    def stopped(self, index: int) -> None:
+        """Seed ``index`` stopped early (diverged): the aggregates go on over the others."""
+        self.training.discard(index)
+        self._flush()
+
+    def on_result(self, index: int, result: dict[str, float]) -> None:
+        self.pending.setdefault(int(result["timesteps"]), {})[index] = float(result["mean_return"])
+        self._flush()
+
+    def _flush(self) -> None:
+        for step in sorted(self.pending):
+            values = self.pending[step]
+            if not self.training or not self.training <= values.keys():
+                return
+            del self.pending[step]
+            if self.error is not None:
+                continue
+            per_seed = {self.seeds[i]: values[i] for i in sorted(values)}
             try:
-                close()
-            except Exception as error:  # a failing close must not hide the exception that ended the run
-                log.warning("Closing %s failed: %s", close, error)
-        if evaluation is not None and evaluation.history:
-            plot_learning_curve(
-                evaluation.history, run_dir / LEARNING_CURVE_PNG, f"{cfg.algo.name} on {cfg.env.id}, seed {cfg.seed}"
+                if self.report_seeds is not None:
+                    self.report_seeds(step, per_seed)
+                if self.report is not None:
+                    self.report(step, _seed_statistic(self.statistic, list(per_seed.values())))
+            except BaseException as error:
+                self.error = error
+                for run in self.runs:
+                    assert run.checkpointer is not None
+                    run.checkpointer.request_stop(f"report ({type(error).__name__})", 0)
+
+
+def _run_seeds(
+    cfg: DictConfig,
+    report: Callable[[int, float], None] | None,
+    statistic: str,
+    report_seeds: Callable[[int, dict[int, float]], None] | None,
+) -> float:
+    """``cfg.seeds`` trained together: each seed's run prepared as its lone run is (folder, envs, model, callbacks),
+    then one :class:`~sb3_td3x.SeedBatch` learns them all; each seed's folder is finished as a lone run's."""
+    from sb3_td3x.td3x.seed_batch import SeedBatch, current_seed
+    from sb3_td3x.td3x.update_paths.seeds import GlobalRandomState
+
+    seeds = [int(s) for s in cfg.seeds]
+    dirs = seed_run_dirs(cfg)
+    runs: list[_Run] = []
+    states: list[GlobalRandomState] = []
+    handlers: list[logging.Handler] = []
+    caller = GlobalRandomState.capture()
+    try:
+        for index, (seed, run_dir) in enumerate(zip(seeds, dirs)):
+            seed_cfg = OmegaConf.create(OmegaConf.to_container(cfg, resolve=False))
+            seed_cfg.seed, seed_cfg.run_dir = seed, str(run_dir)
+            seed_cfg.seed_run_dirs = [str(d) for d in dirs]
+            resumes = cfg.resume is not None and find_checkpoint(checkpoint_dir(run_dir, LAST)) is not None
+            if cfg.resume is not None and not resumes:
+                log.warning(
+                    "Seed %d has no checkpoint in %s: it starts from the beginning (as its lone run would).", seed, run_dir
+                )
+            seed_cfg.resume = str(run_dir) if resumes else None
+            if (handler := _seed_log_file(run_dir, index)) is not None:
+                handlers.append(handler)
+            token = current_seed.set(index)
+            try:
+                runs.append(_prepare(seed_cfg))
+                # Where this seed's lone run stands when it calls learn(): its random stream from now on.
+                states.append(GlobalRandomState.capture(runs[-1].model.device))
+            finally:
+                current_seed.reset(token)
+        caller.restore()
+        reports = _SeedReports(seeds, runs, statistic, report, report_seeds)
+        for index, run in enumerate(runs):
+            assert run.evaluation is not None
+            run.evaluation.listeners.append(reports.listener(index))
+        training = [i for i, run in enumerate(runs) if run.remaining > 0]
+        reports.training = set(training)
+        errors: dict[int, BaseException] = {}
+        if training:
+            batch = SeedBatch.from_models(
+                [runs[i].model for i in training], [states[i] for i in training], [seeds[i] for i in training]
             )
+            reason = batch.why_not_stacked()
+            log.info(
+                "Training seeds %s together in one process: %s",
+                [seeds[i] for i in training],
+                "the gradient steps batched (seed_stacked_mlp)" if reason is None else f"each seed's update alone ({reason})",
+            )
+            with StopOnSignal(*[runs[i].checkpointer for i in training]):  # type: ignore[misc]
+                batch.learn(
+                    total_timesteps=[runs[i].remaining for i in training],
+                    callback=[runs[i].callbacks for i in training],
+                    log_interval=cfg.logger.log_interval,
+                    reset_num_timesteps=[runs[i].resume_from is None for i in training],
+                    keep_going=True,
+                    on_error=lambda position, error: reports.stopped(training[position]),
+                )
+            errors = {training[position]: error for position, error in batch.errors.items()}
+        if reports.error is not None:
+            raise reports.error
+        finals = {}
+        for index, run in enumerate(runs):
+            if index not in errors:
+                token = current_seed.set(index)
+                try:
+                    finals[seeds[index]] = _finish(run)
+                finally:
+                    current_seed.reset(token)
+        for kind in (TrainingInterrupted, TrainingDiverged, BaseException):
+            failed = [(i, e) for i, e in errors.items() if isinstance(e, kind)]
+            if failed:
+                index, error = failed[0]
+                if isinstance(error, TrainingInterrupted):
+                    # Resume the batch from any seed's folder (each config.yaml lists them all).
+                    raise TrainingInterrupted(error.signal_name, error.exit_code, error.num_timesteps, str(dirs[0])) from error
+                log.error("Seed %d failed: %s", seeds[index], error)
+                raise error
+        value = _seed_statistic(statistic, list(finals.values()))
+        _log_seed_aggregate(dirs, seeds, finals, statistic, value)
+        return value
+    finally:
+        caller.restore()
+        for run in runs:
+            _close(run)
+        for handler in handlers:
+            logging.getLogger().removeHandler(handler)
+            handler.close()
+
+
+class _SeedFilter(logging.Filter):
+    def __init__(self, index: int) -> None:
+        super().__init__()
+        self.index = index
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        from sb3_td3x.td3x.seed_batch import current_seed
+
+        return current_seed.get() in (None, self.index)
+
+
+def _seed_log_file(run_dir: Path, index: int) -> logging.Handler | None:
+    """``<run_dir>/run.log``, as a lone ``run.py`` run has (Hydra's): the lines of seed ``index`` and those of the
+    batch as a whole. None where a handler writes that file already (Hydra's, in the folder it was given: the first
+    seed's, which then holds every seed's lines)."""
+    run_dir.mkdir(parents=True, exist_ok=True)
+    path = (run_dir / RUN_LOG).resolve()
+    for existing in logging.getLogger().handlers:
+        if isinstance(existing, logging.FileHandler) and Path(existing.baseFilename).resolve() == path:
+            return None
+    handler = logging.FileHandler(path)
+    handler.setFormatter(logging.Formatter("[%(asctime)s][%(name)s][%(levelname)s] - %(message)s"))
+    handler.addFilter(_SeedFilter(index))
+    logging.getLogger().addHandler(handler)
+    return handler
+
+
+def _log_seed_aggregate(dirs: list[Path], seeds: list[int], finals: dict[int, float], statistic: str, value: float) -> None:
+    """The aggregate across seeds (mean and IQM, each with its 95% bootstrap interval), as
+    ``python -m sb3_td3x.experiment.aggregate`` prints it."""
+    from sb3_td3x.experiment.aggregate import aggregate, load_runs, to_markdown
+
+    per_seed = ", ".join(f"seed {seed}: {finals[seed]:.2f}" for seed in seeds if seed in finals)
+    log.info("Seeds' final evaluations: %s; %s %.2f", per_seed, statistic, value)
+    try:
+        runs = load_runs([d for d in dirs if d.is_dir()])
+        for stat in SEED_STATISTICS:
+            table, _ = aggregate(runs, stat)
+            shown = table[["env_id", "algo", "n_runs", "timesteps", f"final_{stat}", "ci_low", "ci_high"]]
+            log.info("Across seeds (%s, 95%% bootstrap CI):\n%s", stat, to_markdown(shown))
+    except (FileNotFoundError, ValueError, KeyError) as error:  # the summary above stands without the table
+        log.warning("Could not aggregate the seeds' evaluations: %s", error)
 
 
 def provenance() -> dict[str, object]:

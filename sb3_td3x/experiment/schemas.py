@@ -162,6 +162,11 @@ class ExperimentConfig:
     checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
     video: VideoConfig | None = None
     seed: int = 0
+    # Several seeds trained together in this process (sb3_td3x.SeedBatch), each as its lone seed= run: seeds=[0,1,2]
+    seeds: list[int] | None = None
+    # Set by the run (not by hand): each seed's run folder, saved in every seed's config.yaml so that resume=<any
+    # seed's folder> resumes the whole batch
+    seed_run_dirs: list[str] | None = None
     n_envs: int = 1
     device: str = "auto"
     total_timesteps: int = II("env.total_timesteps")
@@ -245,6 +250,14 @@ def check_config(cfg: DictConfig) -> None:
     need(cfg.total_timesteps > 0, f"total_timesteps={cfg.total_timesteps} must be a positive number of steps")
     need(cfg.n_envs >= 1, f"n_envs={cfg.n_envs} must be at least 1")
     need(cfg.seed >= 0, f"seed={cfg.seed} must be >= 0")
+    if cfg.seeds is not None:
+        seeds = list(cfg.seeds)
+        if not seeds or min(seeds) < 0 or len(set(seeds)) != len(seeds):
+            problems.append(f"seeds={seeds} must list distinct seeds >= 0, e.g. seeds=[0,1,2]")
+        elif cfg.seed not in seeds:
+            problems.append(f"seed={cfg.seed} is not one of seeds={seeds}; drop seed= (run.py sets it to the first seed)")
+        if cfg.seed_run_dirs is not None and len(cfg.seed_run_dirs) != len(seeds):
+            problems.append(f"seed_run_dirs has {len(cfg.seed_run_dirs)} folders for {len(seeds)} seeds; leave it unset")
     need(cfg.torch_threads is None or cfg.torch_threads >= 1, f"torch_threads={cfg.torch_threads} must be >= 1 or null")
     problems += _device_problems(cfg.device)
 

@@ -133,9 +133,7 @@ class SeedBatch:
             raise ValueError(f"SeedBatch: seeds {seeds} repeat a seed; each seed is one run, give each once.")
         return [int(s) for s in seeds]
 
-    def _setup(
-        self, models: list[OffPolicyAlgorithm], states: list[GlobalRandomState], seeds: list[int], fuse: bool
-    ) -> None:
+    def _setup(self, models: list[OffPolicyAlgorithm], states: list[GlobalRandomState], seeds: list[int], fuse: bool) -> None:
         if len(models) != len(seeds) or len(states) != len(seeds):
             raise ValueError(f"SeedBatch: {len(models)} models, {len(states)} random states and {len(seeds)} seeds.")
         if len({id(m) for m in models}) != len(models):
@@ -154,6 +152,7 @@ class SeedBatch:
         self.errors: dict[int, BaseException] = {}
         self._stacked: SeedStackedMlpUpdate | None = None
         self._announced: set[int] = set()
+        self._on_error: Callable[[int, BaseException], None] | None = None
 
     # ------------------------------------------------------------------------------------------------------------
     def __len__(self) -> int:
@@ -234,28 +233,36 @@ class SeedBatch:
 
     def learn(
         self,
-        total_timesteps: int,
+        total_timesteps: int | Sequence[int],
         callback: Sequence[MaybeCallback] | None = None,
         log_interval: int = 4,
         tb_log_name: str = "TD3X",
-        reset_num_timesteps: bool = True,
+        reset_num_timesteps: bool | Sequence[bool] = True,
         progress_bar: bool = False,
         keep_going: bool = False,
+        on_error: Callable[[int, BaseException], None] | None = None,
     ) -> SeedBatch:
         """``model.learn(total_timesteps, ...)`` for every seed, in one loop (see the module's docstring).
 
+        :param total_timesteps: as SB3's, for every seed, or one per seed (resumed runs that stopped at different
+            steps)
         :param callback: None, or one entry per seed (what SB3's ``learn`` takes: a callback, a list of them, None)
+        :param reset_num_timesteps: as SB3's, for every seed, or one per seed
         :param keep_going: a seed that raises stops alone and the others go on; :attr:`errors` maps its index to the
             exception. ``False``: the exception propagates at once (every seed can go on with
             ``learn(..., reset_num_timesteps=False)``, as a lone run can)
+        :param on_error: with ``keep_going``, called as ``on_error(index, exception)`` when a seed stops
         """
         callbacks = self._per_seed_callbacks(callback)
+        totals = self._per_seed_values("total_timesteps", total_timesteps)
+        resets = self._per_seed_values("reset_num_timesteps", reset_num_timesteps)
         self.errors = {}
+        self._on_error = on_error
         runs: list[_SeedRun] = []
         with self.streams.kept_apart():
             for i, model in enumerate(self.models):
                 with self._seed(i):
-                    total, cb = model._setup_learn(total_timesteps, callbacks[i], reset_num_timesteps, tb_log_name, progress_bar)
+                    total, cb = model._setup_learn(totals[i], callbacks[i], resets[i], tb_log_name, progress_bar)
                     cb.on_training_start({"self": model, "total_timesteps": total, "log_interval": log_interval}, globals())
                 runs.append(_SeedRun(i, model, total, cb, finished=model.num_timesteps >= total))
             self._choose_update()
@@ -295,11 +302,22 @@ class SeedBatch:
                         run.callback.on_training_end()
         return self
 
+    def _per_seed_values(self, name: str, value: Any) -> list[Any]:
+        if not isinstance(value, (list, tuple)):
+            return [value] * len(self.models)
+        if len(value) != len(self.models):
+            raise ValueError(
+                f"SeedBatch.learn: {len(value)} values of {name} for {len(self.models)} seeds; give one, or one per seed."
+            )
+        return list(value)
+
     def _fail(self, run: _SeedRun, error: Exception, keep_going: bool) -> None:
         if not keep_going:
             raise error
         run.failed = True
         self.errors[run.index] = error
+        if self._on_error is not None:
+            self._on_error(run.index, error)
         log.warning("SeedBatch: seed %d stopped: %s: %s", self.seeds[run.index], type(error).__name__, error)
 
     def _choose_update(self) -> None:

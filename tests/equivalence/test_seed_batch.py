@@ -153,9 +153,7 @@ def test_per_seed_evaluations_equal_the_lone_runs():
     make = factory()
 
     def evaluation(seed):
-        return EvalCallback(
-            factory()(seed).get_env(), eval_freq=150, n_eval_episodes=1, verbose=0, warn=False
-        )
+        return EvalCallback(factory()(seed).get_env(), eval_freq=150, n_eval_episodes=1, verbose=0, warn=False)
 
     lone_evals = []
     for seed in SEEDS:
