@@ -264,10 +264,14 @@ SEED_STATISTICS = ("mean", "iqm")
 
 
 def seed_run_dirs(cfg: DictConfig) -> list[Path]:
-    """The run folder of each of ``cfg.seeds``: ``cfg.seed_run_dirs`` when set (``run.py``), else
-    ``<run_dir>/seed<s>``."""
+    """The run folder of each of ``cfg.seeds``: ``cfg.seed_run_dirs`` when set (``run.py``, or the saved config of
+    the seed folder ``cfg.resume``), else ``<run_dir>/seed<s>``."""
     if cfg.seed_run_dirs is not None:
         return [Path(d) for d in cfg.seed_run_dirs]
+    if cfg.resume is not None and (Path(cfg.resume) / CONFIG_FILE).is_file():
+        saved = OmegaConf.load(Path(cfg.resume) / CONFIG_FILE).get("seed_run_dirs")
+        if saved is not None and len(saved) == len(cfg.seeds):
+            return [Path(d) for d in saved]
     return [Path(cfg.run_dir) / f"seed{seed}" for seed in cfg.seeds]
 
 
