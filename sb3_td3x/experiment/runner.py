@@ -349,6 +349,11 @@ def _run_seeds(
     runs: list[_Run] = []
     states: list[GlobalRandomState] = []
     handlers: list[logging.Handler] = []
+    if cfg.resume is not None and not any(find_checkpoint(checkpoint_dir(d, LAST)) for d in dirs):
+        raise ConfigError(
+            f"resume={cfg.resume}: none of the batch's seed folders ({', '.join(map(str, dirs))}) has a checkpoint, "
+            "so there is nothing to resume; start the batch again without resume=."
+        )
     caller = GlobalRandomState.capture()
     try:
         for index, (seed, run_dir) in enumerate(zip(seeds, dirs)):
