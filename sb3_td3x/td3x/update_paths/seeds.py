@@ -121,30 +121,49 @@ class GlobalRandomState:
 
 
 class SeedRandomStreams:
-    """One :class:`GlobalRandomState` per seed: seed ``i``'s draws run with its state as the global one."""
+    """One :class:`GlobalRandomState` per seed: seed ``i``'s draws run with its state as the global one.
+
+    Swaps are lazy: a seed's state stays the global one after its block until another seed's block (or the end of
+    :meth:`kept_apart`) needs the generators, so one seed alone, or the same seed twice in a row, costs no swap.
+    Code that runs inside :meth:`kept_apart` but outside every :meth:`seed` block must not draw random numbers (it
+    would draw from the last seed's stream)."""
 
     def __init__(self, states: Sequence[GlobalRandomState], device: th.device | str = "cpu"):
         self.states = list(states)
         self.device = th.device(device)
+        self._owner: int | None = None  # the seed whose state is the global one now, not yet captured
+
+    def _release(self) -> None:
+        if self._owner is not None:
+            self.states[self._owner] = GlobalRandomState.capture(self.device)
+            self._owner = None
 
     @contextlib.contextmanager
     def seed(self, i: int) -> Iterator[None]:
-        """Seed ``i``'s state as the global one inside, and kept as seed ``i``'s at the end. The caller's state is
-        not put back (:meth:`kept_apart` does that once around many draws)."""
-        self.states[i].restore()
-        try:
-            yield
-        finally:
-            self.states[i] = GlobalRandomState.capture(self.device)
+        """Seed ``i``'s state as the global one inside; what it draws is kept as seed ``i``'s state (in
+        ``states[i]`` at the latest when another seed's block starts or :meth:`kept_apart` ends). The caller's state
+        is not put back (:meth:`kept_apart` does that once around many blocks)."""
+        if self._owner != i:
+            self._release()
+            self.states[i].restore()
+            self._owner = i
+        yield
 
     @contextlib.contextmanager
     def kept_apart(self) -> Iterator[None]:
-        """The caller's global state, put back at the end."""
+        """The caller's global state, put back at the end (every seed's state kept in ``states`` first)."""
+        outer_owner = self._owner
+        self._release()  # nested: the live state of the outer block's seed is kept first (and is the "caller's")
         caller = GlobalRandomState.capture(self.device)
         try:
             yield
         finally:
-            caller.restore()
+            self._release()
+            if outer_owner is None:
+                caller.restore()
+            else:  # the outer block's seed goes on from where the inner blocks left its stream
+                self.states[outer_owner].restore()
+                self._owner = outer_owner
 
 
 def _per_critic(x: th.Tensor, n_critics: int) -> th.Tensor:
