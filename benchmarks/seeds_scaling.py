@@ -11,12 +11,16 @@ separate processes of TD3X and of SB3's TD3, for N = 1, 2, 4, 8 (16 on a GPU).
 included. Every model first runs ``learning_starts`` random steps and ``--warmup`` training steps (untimed: buffers
 past ``learning_starts``, optimizer states created, the update path chosen), so that each timed step is one
 environment step and one gradient step. Then ``--steps`` steps per seed are timed (``learn(steps,
-reset_num_timesteps=False)``, a GPU synchronized at both ends). Three ways to train N seeds:
+reset_num_timesteps=False)``, a GPU synchronized at both ends). Four ways to train N seeds:
 
 - ``batched``: one process, ``SeedBatch(make_model, seeds=range(N)).learn(...)``, torch threads = ``--threads``
   (default: every core this process may run on). Its rate is N * steps / the timed call's wall time. The table
   notes a batch whose gradient steps did not run batched (``update_path`` other than ``seed_stacked_mlp``; with one
   seed it is ``per_seed``, the lone update).
+- ``batched_per_core``: ``min(N, threads)`` processes side by side, each a ``SeedBatch`` of every P-th seed, with
+  the threads shared among them (one each on a CPU with as many cores as threads): what ``python run.py -m
+  seeds=[0,2,4,6],[1,3,5,7]`` runs. On a CPU, one thread per process beats two threads in one for these small
+  products.
 - ``td3x_procs``: N processes, each a lone ``TD3X`` of seed i, started together and sharing the cores, each with
   torch threads = max(1, threads // N): ``threads_per_job`` of ``sb3_td3x.experiment.cli``, what a Hydra multirun of
   N jobs side by side gets. The processes are not pinned to cores. With N above the core count they time-share the
@@ -76,7 +80,8 @@ from stable_baselines3.common.utils import get_device
 
 from sb3_td3x import TD3X, SeedBatch
 
-MODES = ("batched", "td3x_procs", "sb3_procs")
+MODES = ("batched", "batched_per_core", "td3x_procs", "sb3_procs")
+BATCHED_MODES = ("batched", "batched_per_core")
 ALGORITHMS = {"td3x_procs": TD3X, "sb3_procs": TD3}
 # TD3's hyperparameters (Fujimoto et al. 2018, Table 3; conf/algo/td3.yaml), the same for every mode.
 PAPER = {
@@ -138,7 +143,7 @@ def worker(config: Config, mode: str, seeds: list[int], threads: int, pad: bool,
     put the record in ``results``; then, with ``pad``, train on untimed until ``done`` is set."""
     try:
         th.set_num_threads(threads)
-        if mode == "batched":
+        if mode in BATCHED_MODES:
             trainer = SeedBatch(lambda seed: make_model(TD3X, config, seed), seeds)
         else:
             trainer = make_model(ALGORITHMS[mode], config, seeds[0])
@@ -183,11 +188,11 @@ def _context(device: str) -> mp.context.BaseContext:
     return mp.get_context("spawn")
 
 
-def measure(config: Config, mode: str, n_seeds: int, threads: int) -> dict:
+def measure(config: Config, mode: str, n_seeds: int, threads: int, total_threads: int) -> dict:
     """One measurement of ``mode`` with ``n_seeds`` seeds: its processes started together, their records combined
     by :func:`combine`."""
     ctx = _context(config.device)
-    groups = [list(range(n_seeds))] if mode == "batched" else [[seed] for seed in range(n_seeds)]
+    groups = seed_groups(mode, n_seeds, total_threads)
     barrier, done, results = ctx.Barrier(len(groups)), ctx.Event(), ctx.Queue()
     pad = len(groups) > 1
     processes = [
@@ -242,11 +247,24 @@ def combine(mode: str, n_seeds: int, threads: int, records: list[dict]) -> dict:
     }
 
 
+def seed_groups(mode: str, n_seeds: int, threads: int) -> list[list[int]]:
+    """The seeds of each process: all in one (``batched``), one batch per thread (``batched_per_core``: as even as
+    possible, ``min(N, threads)`` processes), or one seed each."""
+    if mode == "batched":
+        return [list(range(n_seeds))]
+    if mode == "batched_per_core":
+        processes = min(n_seeds, threads)
+        return [list(range(n_seeds))[p::processes] for p in range(processes)]
+    return [[seed] for seed in range(n_seeds)]
+
+
 def threads_for(mode: str, n_seeds: int, threads: int) -> int:
-    """Torch threads of each process: all of ``threads`` for the batch, the cores shared among N processes else."""
+    """Torch threads of each process: all of ``threads`` for the batch, the cores shared among the processes else."""
     from sb3_td3x.experiment.cli import threads_per_job  # here: it imports Hydra, which the workers do without
 
-    return threads if mode == "batched" else threads_per_job(n_seeds, threads)
+    if mode == "batched":
+        return threads
+    return threads_per_job(len(seed_groups(mode, n_seeds, threads)), threads)
 
 
 def plan(modes: list[str], seeds: list[int]) -> list[tuple[str, int]]:
@@ -285,36 +303,37 @@ def ratios(rows: dict[tuple[str, int], dict], seeds: list[int]) -> list[dict]:
     baseline = rows[("sb3_procs", 1)]["seed_steps_per_s"]
     out = []
     for n in seeds:
-        if ("batched", n) not in rows:
-            continue
-        batched = rows[("batched", n)]["seed_steps_per_s"]
-        entry: dict = {"n_seeds": n}
-        for mode in ("td3x_procs", "sb3_procs"):
-            entry[f"batched_over_{mode}"] = batched / rows[(mode, n)]["seed_steps_per_s"] if (mode, n) in rows else None
-        entry["batched_over_one_sb3_process"] = batched / baseline
-        out.append(entry)
+        for batched_mode in BATCHED_MODES:
+            if (batched_mode, n) not in rows:
+                continue
+            batched = rows[(batched_mode, n)]["seed_steps_per_s"]
+            entry: dict = {"n_seeds": n, "mode": batched_mode}
+            for mode in ("td3x_procs", "sb3_procs"):
+                entry[f"batched_over_{mode}"] = batched / rows[(mode, n)]["seed_steps_per_s"] if (mode, n) in rows else None
+            entry["batched_over_one_sb3_process"] = batched / baseline
+            out.append(entry)
     return out
 
 
 def print_table(rows: dict[tuple[str, int], dict], seeds: list[int]) -> None:
     baseline = rows[("sb3_procs", 1)]["seed_steps_per_s"]
-    print(f"\n{'N':>3}  {'mode':<11} {'procs x threads':>15} {'seed-steps/s':>13} {'per seed':>9} {'/ one SB3 proc':>15}")
+    print(f"\n{'N':>3}  {'mode':<16} {'procs x threads':>15} {'seed-steps/s':>13} {'per seed':>9} {'/ one SB3 proc':>15}")
     for (mode, n), row in sorted(rows.items(), key=lambda item: (item[0][1], MODES.index(item[0][0]))):
         rate = row["seed_steps_per_s"]
         note = ""
-        if mode == "batched" and n > 1 and any(p != "seed_stacked_mlp" for p in row["update_paths"]):
+        if mode in BATCHED_MODES and row["processes"] < n and any(p != "seed_stacked_mlp" for p in row["update_paths"]):
             note = f"  (not batched: update_path {row['update_paths']})"
         print(
-            f"{n:>3}  {mode:<11} {row['processes']:>7} x {row['threads_per_process']:<5} {rate:>13.1f} {rate / n:>9.1f} "
+            f"{n:>3}  {mode:<16} {row['processes']:>7} x {row['threads_per_process']:<5} {rate:>13.1f} {rate / n:>9.1f} "
             f"{rate / baseline:>14.2f}x{note}"
         )
-    print(f"\n{'N':>3}  {'batched / td3x_procs':>21} {'batched / sb3_procs':>20} {'batched / one SB3 proc':>23}")
+    print(f"\n{'N':>3}  {'batched mode':<17} {'/ td3x_procs':>13} {'/ sb3_procs':>12} {'/ one SB3 proc':>15}")
     for entry in ratios(rows, seeds):
         cells = [
             "-" if entry[key] is None else f"{entry[key]:.2f}x"
             for key in ("batched_over_td3x_procs", "batched_over_sb3_procs", "batched_over_one_sb3_process")
         ]
-        print(f"{entry['n_seeds']:>3}  {cells[0]:>21} {cells[1]:>20} {cells[2]:>23}")
+        print(f"{entry['n_seeds']:>3}  {entry['mode']:<17} {cells[0]:>13} {cells[1]:>12} {cells[2]:>15}")
 
 
 def cpu_model() -> str:
@@ -429,7 +448,7 @@ def main(argv: list[str] | None = None) -> None:
     measurements = []
     for repeat in range(args.repeats):
         for mode, n in plan(args.modes, args.seeds):
-            m = measure(config, mode, n, threads_for(mode, n, args.threads))
+            m = measure(config, mode, n, threads_for(mode, n, args.threads), args.threads)
             m["repeat"] = repeat
             measurements.append(m)
             rates = ", ".join(f"{r['steps_per_s']:.1f}" for r in m["per_process"])

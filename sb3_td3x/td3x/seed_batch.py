@@ -203,7 +203,7 @@ class SeedBatch:
     def why_not_stacked(self) -> str | None:
         """Why the gradient steps cannot run as one batched update (then each seed trains alone), or None."""
         if len(self.models) == 1:
-            return "one seed: it runs its own update"
+            return "one seed: its own learn()"
         not_td3x = [f"model {i} is a {type(m).__name__}" for i, m in enumerate(self.models) if not isinstance(m, TD3X)]
         if not_td3x:
             return "the batched update is TD3X's: " + "; ".join(not_td3x)
@@ -236,7 +236,7 @@ class SeedBatch:
         total_timesteps: int | Sequence[int],
         callback: Sequence[MaybeCallback] | None = None,
         log_interval: int = 4,
-        tb_log_name: str = "TD3X",
+        tb_log_name: str | None = None,
         reset_num_timesteps: bool | Sequence[bool] = True,
         progress_bar: bool = False,
         keep_going: bool = False,
@@ -247,6 +247,7 @@ class SeedBatch:
         :param total_timesteps: as SB3's, for every seed, or one per seed (resumed runs that stopped at different
             steps)
         :param callback: None, or one entry per seed (what SB3's ``learn`` takes: a callback, a list of them, None)
+        :param tb_log_name: TensorBoard run name (default: the model's class name, as SB3's and TD3X's ``learn``)
         :param reset_num_timesteps: as SB3's, for every seed, or one per seed
         :param keep_going: a seed that raises stops alone and the others go on; :attr:`errors` maps its index to the
             exception. ``False``: the exception propagates at once (every seed can go on with
@@ -258,11 +259,21 @@ class SeedBatch:
         resets = self._per_seed_values("reset_num_timesteps", reset_num_timesteps)
         self.errors = {}
         self._on_error = on_error
+        if len(self.models) == 1:  # one seed: its own learn(), today's TD3X to the line
+            self._choose_update()
+            try:
+                with self.seed_context(0) as model:
+                    name = tb_log_name or type(model).__name__
+                    model.learn(totals[0], callbacks[0], log_interval, name, resets[0], progress_bar)
+            except Exception as error:
+                self._fail(_SeedRun(0, self.models[0], totals[0], None, failed=True), error, keep_going)  # type: ignore[arg-type]
+            return self
         runs: list[_SeedRun] = []
         with self.streams.kept_apart():
             for i, model in enumerate(self.models):
                 with self._seed(i):
-                    total, cb = model._setup_learn(totals[i], callbacks[i], resets[i], tb_log_name, progress_bar)
+                    name = tb_log_name or type(model).__name__
+                    total, cb = model._setup_learn(totals[i], callbacks[i], resets[i], name, progress_bar)
                     cb.on_training_start({"self": model, "total_timesteps": total, "log_interval": log_interval}, globals())
                 runs.append(_SeedRun(i, model, total, cb, finished=model.num_timesteps >= total))
             self._choose_update()

@@ -81,11 +81,13 @@ def assert_same_run(batched: TD3X, lone: TD3X, batched_state: GlobalRandomState,
     assert th.equal(batched_state.torch, lone_state.torch)
 
 
-def test_seeds_trained_together_compute_what_lone_runs_compute(tmp_path):
+@pytest.mark.parametrize("seeds_per_product", [None, 2, 3], ids=["default-1-on-cpu", "groups-of-2", "all-3-as-on-a-gpu"])
+def test_seeds_trained_together_compute_what_lone_runs_compute(tmp_path, seeds_per_product):
     lone, lone_states = lone_runs()
     models, states = batched_models()
     caller = GlobalRandomState.capture()
-    update = SeedStackedMlpUpdate(models, states)
+    update = SeedStackedMlpUpdate(models, states, seeds_per_product=seeds_per_product)
+    assert update.seeds_per_product == (seeds_per_product or 1)
     train_in_chunks(update.train, models)
     # Each role of every seed is one stacked tensor per layer; the models' Parameters are views of it.
     storage = {p.untyped_storage().data_ptr() for model in models for p in model.critic.parameters()}

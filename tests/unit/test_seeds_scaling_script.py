@@ -61,7 +61,7 @@ def test_one_sb3_process_is_always_measured_first_when_the_plan_lacks_it(scaling
         ("td3x_procs", 4),
     ]
     full = scaling.plan(list(scaling.MODES), [1, 16])
-    assert full.count(("sb3_procs", 1)) == 1 and full[:3] == [(mode, 1) for mode in scaling.MODES]
+    assert full.count(("sb3_procs", 1)) == 1 and full[: len(scaling.MODES)] == [(mode, 1) for mode in scaling.MODES]
 
 
 @pytest.mark.parametrize(
@@ -92,6 +92,15 @@ def test_ratios_are_taken_at_the_same_n_and_against_one_sb3_process(scaling):
     rows = scaling.summarize(measurements + [{**measurements[2], "seed_steps_per_s": 800.0}])  # a second repeat
     assert rows[("batched", 4)]["seed_steps_per_s"] == 700.0  # the median of the repeats
     assert scaling.ratios(rows, [1, 4]) == [
-        {"n_seeds": 1, "batched_over_td3x_procs": None, "batched_over_sb3_procs": 1.1, "batched_over_one_sb3_process": 1.1},
-        {"n_seeds": 4, "batched_over_td3x_procs": 1.75, "batched_over_sb3_procs": None, "batched_over_one_sb3_process": 7.0},
+        {"n_seeds": 1, "mode": "batched", "batched_over_td3x_procs": None, "batched_over_sb3_procs": 1.1,
+         "batched_over_one_sb3_process": 1.1},
+        {"n_seeds": 4, "mode": "batched", "batched_over_td3x_procs": 1.75, "batched_over_sb3_procs": None,
+         "batched_over_one_sb3_process": 7.0},
     ]
+
+
+def test_one_batch_per_core_splits_the_seeds_evenly(scaling):
+    assert scaling.seed_groups("batched_per_core", 8, 2) == [[0, 2, 4, 6], [1, 3, 5, 7]]
+    assert scaling.seed_groups("batched_per_core", 1, 2) == [[0]]
+    assert scaling.seed_groups("batched", 4, 2) == [[0, 1, 2, 3]]
+    assert scaling.seed_groups("td3x_procs", 3, 2) == [[0], [1], [2]]
