@@ -21,4 +21,4 @@ if [ -f mkdocs.yml ]; then
 fi
 
 # Two processes for two cores; each test process uses one torch thread (tests/conftest.py).
-python -m pytest -n 2 --dist loadfile --timeout 900 -q "$@"
+python -m pytest -n 2 --dist loadfile --timeout 900 -q --durations=15 "$@"

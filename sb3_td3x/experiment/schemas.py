@@ -193,10 +193,18 @@ def _if_resume(resume: str | None, when_resuming: Any, otherwise: Any) -> Any:
     return otherwise if resume is None else when_resuming
 
 
+def _seed_label(seed: int, seeds: Any) -> str:
+    """``seed3``, or ``seeds1-3`` for a batch (``seeds=[1,3]``): a multirun job's folder name."""
+    return f"seed{seed}" if seeds is None else "seeds" + "-".join(str(s) for s in seeds)
+
+
 register_configs()
 if not OmegaConf.has_resolver("td3x.if_resume"):
     # conf/config.yaml: a resumed run goes on in the folder it resumes
     OmegaConf.register_new_resolver("td3x.if_resume", _if_resume)
+if not OmegaConf.has_resolver("td3x.seed_label"):
+    # conf/config.yaml: a multirun job's folder names its seed, or its batch's seeds
+    OmegaConf.register_new_resolver("td3x.seed_label", _seed_label)
 
 
 def _integer_keys() -> set[str]:
