@@ -15,9 +15,11 @@ THRESHOLD = -250.0
 
 @pytest.mark.slow
 @pytest.mark.timeout(900)
-@pytest.mark.parametrize("seed, mlp_update", [(0, True), (1, True), (0, False)], ids=["mlp-0", "mlp-1", "autograd-0"])
+@pytest.mark.parametrize("seed, mlp_update", [(0, True), (1, True)], ids=["mlp-0", "mlp-1"])
 def test_td3x_learns_pendulum(seed, mlp_update):
-    """The default update (MlpUpdate, gradients by hand) on two seeds, and the hooks with autograd on one."""
+    """The default update (MlpUpdate, gradients by hand) on two seeds. The hooks with autograd compute the same
+    weights from one seed (tests/equivalence: test_user_changes.py's stock cases, test_equivalence.py against SB3's
+    TD3), so a learning run of their own (100 s in CI) was dropped to keep the suite under 15 minutes."""
     env = gym.make("Pendulum-v1")
     model = TD3X(
         "MlpPolicy",

@@ -269,7 +269,9 @@ def test_bf16_learns_pendulum():
 
 @pytest.mark.slow
 @pytest.mark.timeout(900)
-@pytest.mark.parametrize("bf16", [False, True])
+# bf16 only: the fp32 compiled update is checked step by step against the eager one
+# (test_compiled_update_matches_eager_steps), which the learning tests cover; its own learning run (80 s) was dropped.
+@pytest.mark.parametrize("bf16", [True])
 def test_compiled_update_learns_pendulum(bf16):
     net_arch = [64, 64] if bf16 and SLOW_BF16 else [256, 256]
     model = TD3X("MlpPolicy", gym.make("Pendulum-v1"), learning_starts=1_000, compile_update=True, bf16=bf16, seed=1,
