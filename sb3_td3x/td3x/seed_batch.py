@@ -28,6 +28,10 @@ network, ``compile_update``, ``cuda_graph``, another algorithm (SB3's ``TD3``), 
 the seeds want different numbers of gradient steps (``train_freq`` in episodes). ``update_reason`` says why, and
 each model's logger gets the line at its first gradient step.
 
+Where it would not run the user's code, it refuses: a model whose class overrides ``learn`` (the batch runs SB3's
+loop itself, calling each model's ``collect_rollouts``, callbacks and ``train``); an overridden ``train`` makes each
+seed train alone.
+
 **Limits.** The environments step one seed after the other (a batch saves per-step overhead in the update, not in
 the simulator). Each seed's callbacks must be its own objects (one list per seed). A seed whose model raises stops
 the batch (``keep_going=False``, the default), or only itself (``keep_going=True``: the others go on and
@@ -255,6 +259,12 @@ class SeedBatch:
         :param on_error: with ``keep_going``, called as ``on_error(index, exception)`` when a seed stops
         """
         callbacks = self._per_seed_callbacks(callback)
+        if len(self.models) > 1 and (changed := [r for i, m in enumerate(self.models) if (r := _learn_changed(i, m))]):
+            raise ValueError(
+                f"SeedBatch.learn runs SB3's learn loop for every seed, so it would not run {'; '.join(changed)}. "
+                "Move that code into a callback (or an override of collect_rollouts or train, which the batch calls), "
+                "or train those seeds alone."
+            )
         totals = self._per_seed_values("total_timesteps", total_timesteps)
         resets = self._per_seed_values("reset_num_timesteps", reset_num_timesteps)
         self.errors = {}
@@ -378,6 +388,16 @@ class SeedBatch:
                     run.model.train(batch_size=run.model.batch_size, gradient_steps=n)
             except Exception as error:
                 self._fail(run, error, keep_going)
+
+
+def _learn_changed(index: int, model: OffPolicyAlgorithm) -> str | None:
+    """Why model ``index``'s ``learn`` is not SB3's loop (an override outside SB3 and this package), or None."""
+    if "learn" in vars(model):
+        return f"model {index}'s learn (set on the instance)"
+    owner = next(cls for cls in type(model).__mro__ if "learn" in vars(cls))
+    if owner.__module__.split(".")[0] in ("stable_baselines3", "sb3_td3x"):
+        return None  # OffPolicyAlgorithm's loop, or a subclass's that only passes its arguments on (TD3, TD3X, ...)
+    return f"model {index}'s learn (overridden by {owner.__name__})"
 
 
 def _flat_callbacks(callbacks: Sequence[MaybeCallback]) -> list[Any]:

@@ -213,3 +213,30 @@ def test_bad_input_is_refused_with_a_clear_message():
     model = make(0)
     with pytest.raises(ValueError, match="a model is given twice"):
         SeedBatch.from_models([model, model], [GlobalRandomState.capture()] * 2, seeds=[0, 1])
+
+
+class CountingTrain(TD3X):
+    """train() overridden (it calls super): the batched update would bypass it, so each seed trains alone."""
+
+    def train(self, gradient_steps, batch_size=100):
+        self.train_calls = getattr(self, "train_calls", 0) + 1
+        super().train(gradient_steps, batch_size)
+
+
+class OwnLearn(TD3X):
+    def learn(self, *args, **kwargs):
+        self.my_learn_ran = True
+        return super().learn(*args, **kwargs)
+
+
+def test_an_overridden_train_runs_and_an_overridden_learn_is_refused():
+    make = factory(CountingTrain)
+    lone = lone_runs(make, steps=200)
+    batch = SeedBatch(make, SEEDS).learn(200)
+    assert batch.update_path == "per_seed" and "train overridden by CountingTrain" in batch.update_reason
+    assert [m.train_calls for m in batch] == [m.train_calls for m in lone] == [100] * len(SEEDS)
+    assert_same_runs(batch, lone)
+    with pytest.raises(ValueError, match=r"would not run model 0's learn \(overridden by OwnLearn\).*callback"):
+        SeedBatch(factory(OwnLearn), SEEDS[:2]).learn(10)
+    single = SeedBatch(factory(OwnLearn), SEEDS[:1]).learn(10)  # one seed: its own learn()
+    assert single[0].my_learn_ran

@@ -329,6 +329,8 @@ class SeedStackedMlpUpdate(requirements.FastPath):
     def requirements(cls, model: TD3X) -> list[str]:
         """Every assumption that ``model`` breaks (empty: its lone update would be ``MlpUpdate``, in fp32)."""
         reasons = MlpUpdate.requirements(model)
+        # The batched update replaces the model's train() and what it calls around the gradient steps.
+        reasons += changed_hooks(model, ("train", "_update_learning_rate", "_log_train_infos"))
         if not getattr(model, "mlp_update", True):
             reasons.append("mlp_update=False")
         if model.bf16:
