@@ -299,12 +299,18 @@ class _SeedReports:
         self.pending: dict[int, dict[int, float]] = {}
         self.training: set[int] = set()
         self.error: BaseException | None = None
+        self.interrupted = False
 
     def listener(self, index: int) -> Callable[[dict[str, float]], None]:
         return lambda result: self.on_result(index, result)
 
-    def stopped(self, index: int) -> None:
-        """Seed ``index`` stopped early (diverged): the aggregates go on over the others."""
+    def stopped(self, index: int, error: BaseException) -> None:
+        """Seed ``index`` stopped early. Diverged (or failed): the aggregates go on over the others. Interrupted (a
+        signal, or ``report`` raised): the whole batch is stopping, so no aggregate of the seeds that evaluated
+        before the others stopped is reported."""
+        if isinstance(error, TrainingInterrupted):
+            self.interrupted = True
+            return
         self.training.discard(index)
         self._flush()
 
@@ -313,6 +319,8 @@ class _SeedReports:
         self._flush()
 
     def _flush(self) -> None:
+        if self.interrupted:
+            return
         for step in sorted(self.pending):
             values = self.pending[step]
             if not self.training or not self.training <= values.keys():
@@ -400,7 +408,7 @@ def _run_seeds(
                     log_interval=cfg.logger.log_interval,
                     reset_num_timesteps=[runs[i].resume_from is None for i in training],
                     keep_going=True,
-                    on_error=lambda position, error: reports.stopped(training[position]),
+                    on_error=lambda position, error: reports.stopped(training[position], error),
                 )
             errors = {training[position]: error for position, error in batch.errors.items()}
         if reports.error is not None:
