@@ -35,26 +35,12 @@ from omegaconf import OmegaConf
 
 from sb3_td3x.experiment.callbacks import EVALUATIONS_CSV
 from sb3_td3x.experiment.runner import CONFIG_FILE
+from sb3_td3x.experiment.statistics import STATISTICS, iqm, mean  # noqa: F401  (iqm and mean: this module's API too)
 from sb3_td3x.experiment.value_bias import VALUE_FIELDS
 
 # The value columns aggregated over seeds (value_states is a count, kept per run only)
 VALUE_METRICS = ("value_estimate", "true_value", "overestimation", "normalized_bias")
 VALUE_BIAS_CSV = "value_bias.csv"
-
-
-def iqm(values: np.ndarray, axis: int = -1) -> np.ndarray:
-    """Interquartile mean along ``axis``: drop the lowest and highest 25% (``floor(n / 4)`` values each) and average."""
-    values = np.sort(values, axis=axis)
-    n = values.shape[axis]
-    cut = n // 4
-    return np.take(values, np.arange(cut, n - cut), axis=axis).mean(axis=axis)
-
-
-def mean(values: np.ndarray, axis: int = -1) -> np.ndarray:
-    return values.mean(axis=axis)
-
-
-STATISTICS: dict[str, Callable[..., np.ndarray]] = {"mean": mean, "iqm": iqm}
 
 
 def bootstrap_ci(

@@ -51,6 +51,12 @@ def checkpoint_dir(run_dir: Path, name: str) -> Path:
     return run_dir / "checkpoints" / name
 
 
+def seed_run_dir(run_dir: Path | str, seed: int) -> Path:
+    """The folder of seed ``seed`` of a batch of seeds run in ``run_dir`` (``run.py seeds=[...]`` with a
+    ``run_dir=`` of its own, a multirun job, a sweep trial)."""
+    return Path(run_dir) / f"seed{seed}"
+
+
 def save_checkpoint(target: Path, model: OffPolicyAlgorithm, experiment_state: dict[str, Any], replay_buffer: bool = True) -> Path:
     """Write a complete checkpoint of ``model`` to the folder ``target``, atomically (see the module docstring).
 

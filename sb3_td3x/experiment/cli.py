@@ -18,7 +18,7 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from sb3_td3x.common.redaction import redact, redact_log_records
-from sb3_td3x.experiment.checkpoints import resume_checkpoint
+from sb3_td3x.experiment.checkpoints import resume_checkpoint, seed_run_dir
 from sb3_td3x.experiment.errors import ConfigError, TrainingDiverged, TrainingInterrupted
 from sb3_td3x.experiment.runner import CONFIG_FILE, run_experiment
 from sb3_td3x.experiment.schemas import ExperimentConfig
@@ -141,7 +141,7 @@ def seed_folders(output_dir: Path, seed: int, seeds: list[int]) -> list[str]:
     job)."""
     parts = list(output_dir.parts)
     if f"seed{seed}" not in parts:
-        return [str(output_dir / f"seed{s}") for s in seeds]
+        return [str(seed_run_dir(output_dir, s)) for s in seeds]
     at = len(parts) - 1 - parts[::-1].index(f"seed{seed}")
     return [str(Path(*parts[:at], f"seed{s}", *parts[at + 1 :])) for s in seeds]
 

@@ -19,19 +19,28 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
 from sb3_td3x.common.redaction import redact
 from sb3_td3x.experiment.algos import algorithm_class, build_algorithm
 from sb3_td3x.experiment.callbacks import Checkpointer, DivergenceCheck, PeriodicEvaluation, ProgressBar, StopOnSignal
-from sb3_td3x.experiment.checkpoints import LAST, checkpoint_dir, find_checkpoint, load_checkpoint, resume_checkpoint
+from sb3_td3x.experiment.checkpoints import (
+    LAST,
+    checkpoint_dir,
+    find_checkpoint,
+    load_checkpoint,
+    resume_checkpoint,
+    seed_run_dir,
+)
 from sb3_td3x.experiment.envs import make_eval_env, make_train_env
 from sb3_td3x.experiment.errors import ConfigError, TrainingDiverged, TrainingInterrupted
 from sb3_td3x.experiment.loggers import build_logger, start_wandb
 from sb3_td3x.experiment.plotting import LEARNING_CURVE_PNG, plot_learning_curve, record_video
 from sb3_td3x.experiment.schemas import check_config, public_config
+from sb3_td3x.experiment.statistics import STATISTICS, seed_statistic
+from sb3_td3x.td3x.seed_batch import SeedBatch, acting_as, current_seed
+from sb3_td3x.td3x.update_paths.seeds import GlobalRandomState
 
 log = logging.getLogger(__name__)
 
@@ -75,8 +84,8 @@ def run_experiment(
         cfg.run_dir = str(cfg.resume)
     OmegaConf.resolve(cfg)  # pins ${now:...} and the env defaults once
     check_config(cfg)
-    if seeds_aggregate not in SEED_STATISTICS:
-        raise ConfigError(f"seeds_aggregate={seeds_aggregate!r} must be one of {', '.join(SEED_STATISTICS)}")
+    if seeds_aggregate not in STATISTICS:
+        raise ConfigError(f"seeds_aggregate={seeds_aggregate!r} must be one of {', '.join(STATISTICS)}")
     if cfg.torch_threads is not None:
         torch.set_num_threads(cfg.torch_threads)
     if cfg.seeds is not None:
@@ -260,9 +269,6 @@ def _close(run: _Run) -> None:
 
 
 # Many seeds in one process ------------------------------------------------------------------------------------------
-SEED_STATISTICS = ("mean", "iqm")
-
-
 def seed_run_dirs(cfg: DictConfig) -> list[Path]:
     """The run folder of each of ``cfg.seeds``: ``cfg.seed_run_dirs`` when set (``run.py``, or the saved config of
     the seed folder ``cfg.resume``), else ``<run_dir>/seed<s>``."""
@@ -272,13 +278,7 @@ def seed_run_dirs(cfg: DictConfig) -> list[Path]:
         saved = OmegaConf.load(Path(cfg.resume) / CONFIG_FILE).get("seed_run_dirs")
         if saved is not None and len(saved) == len(cfg.seeds):
             return [Path(d) for d in saved]
-    return [Path(cfg.run_dir) / f"seed{seed}" for seed in cfg.seeds]
-
-
-def _seed_statistic(name: str, values: list[float]) -> float:
-    from sb3_td3x.experiment.aggregate import STATISTICS  # aggregate imports this module
-
-    return float(STATISTICS[name](np.asarray(values, dtype=float)))
+    return [seed_run_dir(cfg.run_dir, seed) for seed in cfg.seeds]
 
 
 class _SeedReports:
@@ -333,7 +333,7 @@ class _SeedReports:
                 if self.report_seeds is not None:
                     self.report_seeds(step, per_seed)
                 if self.report is not None:
-                    self.report(step, _seed_statistic(self.statistic, list(per_seed.values())))
+                    self.report(step, seed_statistic(self.statistic, list(per_seed.values())))
             except BaseException as error:
                 self.error = error
                 for run in self.runs:
@@ -349,9 +349,6 @@ def _run_seeds(
 ) -> float:
     """``cfg.seeds`` trained together: each seed's run prepared as its lone run is (folder, envs, model, callbacks),
     then one :class:`~sb3_td3x.SeedBatch` learns them all; each seed's folder is finished as a lone run's."""
-    from sb3_td3x.td3x.seed_batch import SeedBatch, current_seed
-    from sb3_td3x.td3x.update_paths.seeds import GlobalRandomState
-
     seeds = [int(s) for s in cfg.seeds]
     dirs = seed_run_dirs(cfg)
     runs: list[_Run] = []
@@ -376,13 +373,10 @@ def _run_seeds(
             seed_cfg.resume = str(run_dir) if resumes else None
             if (handler := _seed_log_file(run_dir, index)) is not None:
                 handlers.append(handler)
-            token = current_seed.set(index)
-            try:
+            with acting_as(index):
                 runs.append(_prepare(seed_cfg))
                 # Where this seed's lone run stands when it calls learn(): its random stream from now on.
                 states.append(GlobalRandomState.capture(runs[-1].model.device))
-            finally:
-                current_seed.reset(token)
         caller.restore()
         reports = _SeedReports(seeds, runs, statistic, report, report_seeds)
         for index, run in enumerate(runs):
@@ -416,11 +410,8 @@ def _run_seeds(
         finals = {}
         for index, run in enumerate(runs):
             if index not in errors:
-                token = current_seed.set(index)
-                try:
+                with acting_as(index):
                     finals[seeds[index]] = _finish(run)
-                finally:
-                    current_seed.reset(token)
         for kind in (TrainingInterrupted, TrainingDiverged, BaseException):
             failed = [(i, e) for i, e in errors.items() if isinstance(e, kind)]
             if failed:
@@ -430,7 +421,7 @@ def _run_seeds(
                     raise TrainingInterrupted(error.signal_name, error.exit_code, error.num_timesteps, str(dirs[0])) from error
                 log.error("Seed %d failed: %s", seeds[index], error)
                 raise error
-        value = _seed_statistic(statistic, list(finals.values()))
+        value = seed_statistic(statistic, list(finals.values()))
         _log_seed_aggregate(dirs, seeds, finals, statistic, value)
         return value
     finally:
@@ -448,8 +439,6 @@ class _SeedFilter(logging.Filter):
         self.index = index
 
     def filter(self, record: logging.LogRecord) -> bool:
-        from sb3_td3x.td3x.seed_batch import current_seed
-
         return current_seed.get() in (None, self.index)
 
 
@@ -478,7 +467,7 @@ def _log_seed_aggregate(dirs: list[Path], seeds: list[int], finals: dict[int, fl
     log.info("Seeds' final evaluations: %s; %s %.2f", per_seed, statistic, value)
     try:
         runs = load_runs([d for d in dirs if d.is_dir()])
-        for stat in SEED_STATISTICS:
+        for stat in STATISTICS:
             table, _ = aggregate(runs, stat)
             shown = table[["env_id", "algo", "n_runs", "timesteps", f"final_{stat}", "ci_low", "ci_high"]]
             log.info("Across seeds (%s, 95%% bootstrap CI):\n%s", stat, to_markdown(shown))

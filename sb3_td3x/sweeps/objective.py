@@ -63,15 +63,12 @@ def compose_config(config_dir: Path, overrides: list[str]) -> DictConfig:
 def seed_overrides(seeds: list[int], run_dir: Path, resume: bool = False) -> list[str]:
     """A trial's own overrides: its seed (and ``seeds=[...]`` for several), its folder, and ``resume`` for the copy
     of an interrupted trial (several seeds resume from the first seed's folder)."""
+    from sb3_td3x.experiment.checkpoints import seed_run_dir
+
     if len(seeds) == 1:
         return [f"seed={seeds[0]}", f"run_dir={run_dir}"] + ([f"resume={run_dir}"] if resume else [])
     own = [f"seed={seeds[0]}", f"seeds={override_value(seeds)}", f"run_dir={run_dir}"]
     return own + ([f"resume={seed_run_dir(run_dir, seeds[0])}"] if resume else [])
-
-
-def seed_run_dir(run_dir: Path, seed: int) -> Path:
-    """The folder of one seed of a trial of several seeds (the runner's layout for ``seeds=[...]``)."""
-    return run_dir / f"seed{seed}"
 
 
 def override_key(override: str) -> str:
@@ -240,7 +237,7 @@ class TrialObjective:
         Ctrl-C/SIGTERM and left a complete checkpoint (of its first seed, for several). A copy of a trial failed by
         the heartbeat starts afresh in its own folder instead, since its first worker may still be writing to the
         old one."""
-        from sb3_td3x.experiment.checkpoints import resume_checkpoint
+        from sb3_td3x.experiment.checkpoints import resume_checkpoint, seed_run_dir
         from sb3_td3x.experiment.errors import ConfigError
 
         if not trial.user_attrs.get(RESUMABLE):

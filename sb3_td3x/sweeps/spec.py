@@ -46,6 +46,7 @@ from omegaconf import MISSING, DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 from optuna.distributions import BaseDistribution, CategoricalDistribution, FloatDistribution, IntDistribution
 
+from sb3_td3x.experiment.statistics import STATISTICS
 from sb3_td3x.sweeps.errors import SweepSpecError
 
 #: Metrics a trial can be scored by, with the direction that improves them.
@@ -58,8 +59,8 @@ _RANGE_KEYS = {"low", "high", "log", "step", "type"}
 _CHOICE_KEYS = {"choices", "type"}
 _TYPES = {"float", "int", "categorical"}
 _BARE_STRING = re.compile(r"^[A-Za-z_][\w\-./]*$")
-#: How a trial of several seeds turns their evaluations into one value (``sb3_td3x.experiment.aggregate.STATISTICS``).
-SEEDS_AGGREGATES = ("mean", "iqm")
+#: How a trial of several seeds turns their evaluations into one value.
+SEEDS_AGGREGATES = tuple(STATISTICS)
 
 
 @dataclass

@@ -62,6 +62,17 @@ log = logging.getLogger(__name__)
 #: handlers filter on (``sb3_td3x.experiment``).
 current_seed: contextvars.ContextVar[int | None] = contextvars.ContextVar("sb3_td3x_current_seed", default=None)
 
+
+@contextlib.contextmanager
+def acting_as(index: int) -> Iterator[None]:
+    """:data:`current_seed` set to ``index`` inside: the code runs as that seed's (its log lines go to its log)."""
+    token = current_seed.set(index)
+    try:
+        yield
+    finally:
+        current_seed.reset(token)
+
+
 SEED_STACKED = "seed_stacked_mlp"
 PER_SEED = "per_seed"
 
@@ -176,21 +187,13 @@ class SeedBatch:
     def seed_context(self, index: int) -> Iterator[OffPolicyAlgorithm]:
         """Seed ``index``'s random state as the global one inside (and :data:`current_seed` set); the caller's
         state is put back at the end. For code that must draw as seed ``index``'s lone run would."""
-        token = current_seed.set(index)
-        try:
-            with self.streams.kept_apart(), self.streams.seed(index):
-                yield self.models[index]
-        finally:
-            current_seed.reset(token)
+        with self.streams.kept_apart(), self._seed(index):
+            yield self.models[index]
 
     @contextlib.contextmanager
     def _seed(self, index: int) -> Iterator[None]:
-        token = current_seed.set(index)
-        try:
-            with self.streams.seed(index):
-                yield
-        finally:
-            current_seed.reset(token)
+        with acting_as(index), self.streams.seed(index):
+            yield
 
     def save(self, directory: str | Path) -> list[Path]:
         """Save each seed's model as ``<directory>/seed<seed>.zip`` (each loads with ``TD3X.load``)."""
@@ -276,7 +279,7 @@ class SeedBatch:
                     name = tb_log_name or type(model).__name__
                     model.learn(totals[0], callbacks[0], log_interval, name, resets[0], progress_bar)
             except Exception as error:
-                self._fail(_SeedRun(0, self.models[0], totals[0], None, failed=True), error, keep_going)  # type: ignore[arg-type]
+                self._fail(0, error, keep_going)
             return self
         runs: list[_SeedRun] = []
         with self.streams.kept_apart():
@@ -304,7 +307,8 @@ class SeedBatch:
                                 log_interval=log_interval,
                             )
                     except Exception as error:
-                        self._fail(run, error, keep_going)
+                        self._fail(run.index, error, keep_going)
+                        run.failed = True
                         continue
                     if not rollout.continue_training:
                         run.finished = True
@@ -332,14 +336,14 @@ class SeedBatch:
             )
         return list(value)
 
-    def _fail(self, run: _SeedRun, error: Exception, keep_going: bool) -> None:
+    def _fail(self, index: int, error: Exception, keep_going: bool) -> None:
+        """Seed ``index`` raised ``error``: raise it, or (``keep_going``) record it; the caller stops the seed."""
         if not keep_going:
             raise error
-        run.failed = True
-        self.errors[run.index] = error
+        self.errors[index] = error
         if self._on_error is not None:
-            self._on_error(run.index, error)
-        log.warning("SeedBatch: seed %d stopped: %s: %s", self.seeds[run.index], type(error).__name__, error)
+            self._on_error(index, error)
+        log.warning("SeedBatch: seed %d stopped: %s: %s", self.seeds[index], type(error).__name__, error)
 
     def _choose_update(self) -> None:
         """The update of this ``learn()`` call: batched where :meth:`why_not_stacked` allows it."""
@@ -387,7 +391,8 @@ class SeedBatch:
                 with self._seed(run.index):
                     run.model.train(batch_size=run.model.batch_size, gradient_steps=n)
             except Exception as error:
-                self._fail(run, error, keep_going)
+                self._fail(run.index, error, keep_going)
+                run.failed = True
 
 
 def _learn_changed(index: int, model: OffPolicyAlgorithm) -> str | None:
@@ -412,4 +417,4 @@ def _flat_callbacks(callbacks: Sequence[MaybeCallback]) -> list[Any]:
     return flat
 
 
-__all__ = ["PER_SEED", "SEED_STACKED", "SeedBatch", "current_seed"]
+__all__ = ["PER_SEED", "SEED_STACKED", "SeedBatch", "acting_as", "current_seed"]

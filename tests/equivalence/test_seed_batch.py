@@ -87,6 +87,16 @@ def test_a_batch_computes_the_lone_runs(cls, path):
     assert all(np.array_equal(a, b) for a, b in zip(np.random.get_state(), caller))
 
 
+def test_the_batched_update_computes_what_the_hooks_compute_with_autograd():
+    """The batch (seed_stacked_mlp) against lone runs of the plain hooks with autograd (mlp_update=False), from the
+    same seeds: the batched update stands in for the hooks themselves, not only for MlpUpdate."""
+    lone = lone_runs(factory(mlp_update=False))
+    assert all(m.update_path == "autograd" for m in lone)
+    batch = SeedBatch(factory(), SEEDS).learn(STEPS)
+    assert batch.update_path == "seed_stacked_mlp"
+    assert_same_runs(batch, lone)
+
+
 def test_the_test_fails_when_the_math_differs():
     """A batch of a model whose loss differs from the lone runs' is seen."""
     lone = lone_runs(factory())

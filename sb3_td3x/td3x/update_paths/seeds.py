@@ -506,7 +506,9 @@ class SeedStackedMlpUpdate(requirements.FastPath):
     def _update_actors(self, obs: th.Tensor, update_actor: Sequence[bool]) -> list[dict[str, th.Tensor]]:
         """Step 13 of the seeds that update their actor (the gradients of all, computed together)."""
         parts = [
-            seed_actor_gradients(obs[a:b], self.n_critics, _seeds(self.actor, a, b, 1), _seeds(self.critic, a, b, self.n_critics))
+            seed_actor_gradients(
+                obs[a:b], self.n_critics, _seeds(self.actor, a, b, 1), _seeds(self.critic, a, b, self.n_critics)
+            )
             for a, b in self._chunks()
         ]
         weight_grads, bias_grads, loss = _joined(parts)
@@ -519,7 +521,6 @@ class SeedStackedMlpUpdate(requirements.FastPath):
             infos.append({"actor_loss": loss[i]} if update else {})
         self._step_optimizers([m.actor.optimizer for m, update in zip(self.models, update_actor) if update])
         return infos
-
 
     def _chunks(self) -> list[tuple[int, int]]:
         """The groups of seeds whose products run as one batched call (``seeds_per_product`` each)."""
