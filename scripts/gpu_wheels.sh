@@ -22,11 +22,18 @@ pin() {  # NAME==VERSION as installed in this venv (the versions CI tests), NAME
     echo "$name${version:+==$version}"
   done
 }
-binary=($(pin mujoco-core mujoco-studio glfw greenlet sqlalchemy))
+binary=($(pin mujoco-core mujoco-studio glfw greenlet sqlalchemy websockets))  # websockets: mujoco-studio's
 "$py" -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 --implementation cp "${platforms[@]}" \
   -d .whl "${binary[@]}"
 # Pure Python, built here when only a source archive exists (antlr4-python3-runtime 4.9.3, which omegaconf pins):
 pure=($(pin mujoco stable-baselines3 gymnasium farama-notifications pyopengl absl-py etils hydra-core omegaconf \
-      antlr4-python3-runtime hydra-joblib-launcher optuna alembic colorlog mako pytest-timeout websockets))
+      antlr4-python3-runtime hydra-joblib-launcher optuna alembic colorlog mako pytest-timeout))
 "$py" -m pip wheel -q --no-deps -w .whl "${pure[@]}"
 du -sh .whl
+# libEGL and friends for MuJoCo's EGL rendering (device README: the image has the NVIDIA driver's EGL, not the loader)
+grep -qx '/.gl/' "$exclude" || echo '/.gl/' >> "$exclude"
+mkdir -p .gl /tmp/amd64/partial
+apt_options=(-oAPT::Architecture=amd64 -oAPT::Architectures=amd64 -oDir::State::Lists=/tmp/amd64)
+apt-get "${apt_options[@]}" update > /dev/null
+(cd .gl && apt-get "${apt_options[@]}" download libvulkan1 libegl1 libglvnd0 libopengl0 libgl1 libglx0 libgles2 > /dev/null)
+du -sh .gl

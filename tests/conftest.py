@@ -26,6 +26,27 @@ def _headless_rendering(monkeypatch):
     monkeypatch.setenv("MUJOCO_GL", os.environ.get("MUJOCO_GL", "egl"))
 
 
+# Layers whose tests compare with CPU references and feed CPU tensors: on a GPU machine, device="auto" means the CPU
+# for them (what it means on every machine CI runs on). The CUDA counterparts are in tests/gpu; the framework layer
+# (run.py, sweeps) and the drop-in layer keep "auto", so on a GPU machine they run on the GPU.
+CPU_LAYERS = {"unit", "equivalence"}
+
+
+@pytest.fixture(autouse=True)
+def _cpu_layers_keep_to_the_cpu(request, monkeypatch):
+    if not th.cuda.is_available() or request.node.path.parent.name not in CPU_LAYERS:
+        return
+    from stable_baselines3.common import base_class, buffers, policies, utils
+
+    from sb3_td3x.common import buffers as td3x_buffers
+
+    def auto_is_the_cpu(device="auto"):
+        return utils.get_device("cpu" if str(device) == "auto" else device)
+
+    for module in (base_class, buffers, policies, td3x_buffers):
+        monkeypatch.setattr(module, "get_device", auto_is_the_cpu)
+
+
 @pytest.fixture
 def pg_url() -> str:
     """The URL of the PostgreSQL server of the sweep tests (``.ci/postgres.sh``); skipped without one, an error in CI."""

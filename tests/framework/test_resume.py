@@ -135,7 +135,7 @@ def test_the_replay_buffer_is_saved_as_its_filled_rows_and_loaded_whole(tmp_path
     from sb3_td3x.experiment.envs import make_train_env
 
     cfg = compose_config(["env=pendulum"])
-    kwargs = dict(buffer_size=100_000, learning_starts=10, policy_kwargs={"net_arch": [8]}, seed=0)
+    kwargs = dict(buffer_size=100_000, learning_starts=10, policy_kwargs={"net_arch": [8]}, seed=0, device="cpu")
     if optimize_memory_usage:
         kwargs.update(optimize_memory_usage=True, replay_buffer_kwargs={"handle_timeout_termination": False})
     model = TD3X("MlpPolicy", make_train_env(cfg.env, 1, 0), **kwargs)

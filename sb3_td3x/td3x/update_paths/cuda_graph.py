@@ -26,14 +26,26 @@ def cuda_graph_capture(fn: Callable[[], Infos], pool: Any | None) -> tuple[Calla
     return graph.replay, outputs, graph.pool()
 
 
+def _device_random_state(device: th.device) -> th.Tensor:
+    return th.cuda.get_rng_state(device) if device.type == "cuda" else th.get_rng_state()
+
+
+def _set_device_random_state(device: th.device, state: th.Tensor) -> None:
+    if device.type == "cuda":
+        th.cuda.set_rng_state(state, device)
+    else:
+        th.set_rng_state(state)
+
+
 class GraphedGradientStep:
     """
     The whole gradient step (sampling included) captured once per (batch size, actor update or not) and replayed.
 
     Requirements, checked by ``TD3X``: a CUDA device, the tensor replay buffer (sampled on the device from bounds
     kept in device tensors), no ``VecNormalize`` (it normalises on the host), and Adam with ``capturable=True``.
-    The warm-up steps that precede a capture are undone (parameters and optimizer states restored in place), so
-    capturing does not change what is learned.
+    The warm-up steps that precede a capture are undone (parameters, optimizer states and the device's random
+    generator restored), so capturing does not change what is learned: each replay computes the eager step that
+    would have run in its place, with the same random draws (``tests/gpu/test_cuda.py`` checks it on a GPU).
 
     :param model: the TD3X model
     :param capture: how to capture a step; ``cuda_graph_capture`` on a GPU. Tests on the CPU pass an eager stand-in,
@@ -67,6 +79,9 @@ class GraphedGradientStep:
         model = self.model
         model.replay_buffer.refresh_static_bounds()  # type: ignore[union-attr]
         saved = self._snapshot()
+        # The warm-up steps and the capture draw random numbers (sampling, smoothing noise): the generator is put
+        # back too, so that the first replay draws what an eager step would have drawn in its place.
+        random_state = _device_random_state(model.device)
         on_cuda = model.device.type == "cuda"
         stream = th.cuda.Stream() if on_cuda else None
         context = th.cuda.stream(stream) if stream is not None else contextlib.nullcontext()
@@ -79,6 +94,7 @@ class GraphedGradientStep:
             th.cuda.current_stream().wait_stream(stream)
         replay, outputs, self._pool = self.capture(lambda: model.gradient_step(batch_size, update_actor), self._pool)
         self._restore(saved)
+        _set_device_random_state(model.device, random_state)
         return replay, outputs
 
     def _tensors(self) -> list[th.Tensor]:
