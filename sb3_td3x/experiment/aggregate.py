@@ -34,6 +34,7 @@ import pandas as pd
 from omegaconf import OmegaConf
 
 from sb3_td3x.experiment.callbacks import EVALUATIONS_CSV
+from sb3_td3x.experiment.plotting import steps_axis
 from sb3_td3x.experiment.runner import CONFIG_FILE
 from sb3_td3x.experiment.statistics import STATISTICS, iqm, mean  # noqa: F401  (iqm and mean: this module's API too)
 from sb3_td3x.experiment.value_bias import VALUE_FIELDS
@@ -188,7 +189,7 @@ def plot_value_curves(curves: dict[tuple[str, str], pd.DataFrame], stat: str, ou
                                 linewidth=0)
             n_runs = curve.attrs.get("n_runs", 0)
             ax.set_title(curve.attrs.get("label", algo) + f", {n_runs} seed{'s' if n_runs != 1 else ''}", fontsize="medium")
-            ax.set_xlabel("environment steps")
+            steps_axis(ax)
             ax.grid(alpha=0.3)
         axes[0][0].set_ylabel(f"value of the visited states ({stat}, 95% CI)")
         axes[0][0].legend(loc="upper left", fontsize="small")
@@ -216,7 +217,7 @@ def plot_curves(curves: dict[tuple[str, str], pd.DataFrame], stat: str, out_dir:
             per_seed = curve.attrs.get("per_seed")
             if per_seed is not None and per_seed.shape[1] > 1:
                 ax.plot(per_seed.index, per_seed.to_numpy(), color=color, alpha=0.35, linewidth=0.7)
-        ax.set_xlabel("environment steps")
+        steps_axis(ax)
         ax.set_ylabel(f"evaluation return ({stat}, 95% CI)")
         ax.set_title(env_id)
         ax.grid(alpha=0.3)

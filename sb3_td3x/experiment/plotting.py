@@ -10,12 +10,19 @@ matplotlib.use("Agg")  # no display needed; set before pyplot is imported
 
 import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.ticker import EngFormatter
 from omegaconf import DictConfig
 
 from sb3_td3x.experiment.envs import make_render_env
 
 LEARNING_CURVE_PNG = "learning_curve.png"
 
+
+
+def steps_axis(ax) -> None:
+    """Label ``ax``'s x axis as environment steps, ticks written 50k, 100k, 1M (full numbers overlap at 200k)."""
+    ax.set_xlabel("environment steps")
+    ax.xaxis.set_major_formatter(EngFormatter(sep=""))
 
 def plot_learning_curve(history: list[dict[str, float]], path: Path, title: str) -> Path:
     """Mean evaluation return against environment steps, with a band of one standard deviation over episodes.
@@ -44,7 +51,7 @@ def plot_learning_curve(history: list[dict[str, float]], path: Path, title: str)
         value_ax.grid(alpha=0.3)
         value_ax.legend(loc="best", fontsize="small")
         ax = value_ax
-    ax.set_xlabel("environment steps")
+    steps_axis(ax)
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
