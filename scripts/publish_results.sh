@@ -22,10 +22,19 @@ while IFS= read -r -d '' file; do records+=("$file"); done < <(find "$src" -path
 
 # Nothing is published while one record holds something that looks like a secret (a URL's password, an API key):
 # the check names the file and line, with the secret masked.
-if ((${#records[@]})) && ! "$python" -m sb3_td3x.common.redaction "${records[@]}"; then
-  echo "error: not publishing: the records above look like they hold a secret; mask it (e.g. ***) in those files" \
-    "or leave them out, then run this again" >&2
-  exit 2
+# Status 3 is a finding; any other failure is the check's own (a Python without this package, say), said as such.
+if ((${#records[@]})); then
+  status=0
+  "$python" -m sb3_td3x.common.redaction "${records[@]}" || status=$?
+  if ((status == 3)); then
+    echo "error: not publishing: the records above look like they hold a secret; mask it (e.g. ***) in those files" \
+      "or leave them out, then run this again" >&2
+    exit 2
+  elif ((status != 0)); then
+    echo "error: not publishing: the secret check ($python -m sb3_td3x.common.redaction) failed with status" \
+      "$status (above); set PYTHON to the interpreter this package is installed in, then run this again" >&2
+    exit 2
+  fi
 fi
 
 for file in "${records[@]}"; do

@@ -20,8 +20,9 @@ says what it was. Redacting twice changes nothing, which is also how :func:`find
 This module sits in ``sb3_td3x.common`` because both the experiment runner and the sweeps write records through
 it, and it imports nothing of the package (SQLAlchemy only when a URL with a password is met).
 
-``python -m sb3_td3x.common.redaction FILE...`` exits with status 1, naming the file and line, when one of the
-files holds something that looks like a secret.
+``python -m sb3_td3x.common.redaction FILE...`` exits with status 3 (``FOUND``), naming the file and line, when one
+of the files holds something that looks like a secret; 2 when a file cannot be read. Not 1: that is what Python
+exits with on an uncaught error, which a caller must not take for a finding.
 """
 
 from __future__ import annotations
@@ -230,9 +231,12 @@ def redact_log_records() -> None:
         logging.setLogRecordFactory(_RedactingRecordFactory(factory))
 
 
+FOUND = 3  # main's exit status when a file holds something that looks like a secret
+
+
 def main(argv: list[str] | None = None) -> int:
-    """``python -m sb3_td3x.common.redaction FILE...``: status 1, with one line per finding, when a file holds
-    something that looks like a secret; 2 when a file cannot be read."""
+    """``python -m sb3_td3x.common.redaction FILE...``: status ``FOUND`` (3), with one line per finding, when a file
+    holds something that looks like a secret; 2 when a file cannot be read."""
     paths = [Path(arg) for arg in (sys.argv[1:] if argv is None else argv)]
     if not paths:
         print("usage: python -m sb3_td3x.common.redaction FILE...", file=sys.stderr)
@@ -246,7 +250,7 @@ def main(argv: list[str] | None = None) -> int:
             return 2
         for number, line in find_secrets(text):
             print(f"{path}:{number}: looks like a secret (shown masked): {line[:300]}", file=sys.stderr)
-            status = 1
+            status = FOUND
     return status
 
 

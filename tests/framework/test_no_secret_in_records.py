@@ -224,10 +224,33 @@ def test_publish_refuses_a_record_that_holds_a_secret(tmp_path):
     out = subprocess.run(
         ["bash", str(REPO / "scripts" / "publish_results.sh"), str(tmp_path / "runs")],
         env={"PATH": f"{Path(sys.executable).parent}:/usr/bin:/bin", "PYTHON": sys.executable,
+             "PYTHONPATH": os.environ.get("PYTHONPATH", ""),  # where packages come from a path (a GPU machine's)
              "RESULTS_DOCS_DIR": str(docs), "RESULTS_PAGE": ""},  # fmt: skip
         capture_output=True, text=True, timeout=120, cwd=REPO,
     )  # fmt: skip
     assert out.returncode == 2, out.stdout + out.stderr
     assert f"{seed / 'provenance.jsonl'}:1: looks like a secret" in out.stderr and "not publishing" in out.stderr
     assert "abc123" not in out.stderr + out.stdout and "Traceback" not in out.stderr
+    assert not docs.exists()
+
+
+def test_publish_says_when_the_secret_check_itself_fails(tmp_path):
+    """A checker that crashes (here a PYTHON without this package) is not reported as a secret: the script says the
+    check failed and how to fix it, and copies nothing."""
+    seed = tmp_path / "runs" / "pendulum" / "td3" / "seed0"
+    seed.mkdir(parents=True)
+    (seed / "evaluations.csv").write_text("timesteps,mean_return\n300,-1200.0\n")
+    broken_python = tmp_path / "python"
+    broken_python.write_text("#!/bin/sh\necho 'ModuleNotFoundError: No module named sb3_td3x' >&2\nexit 1\n")
+    broken_python.chmod(0o755)
+    # The fake exits 1, as Python does on an uncaught error (the module reports a finding with status 3).
+    docs = tmp_path / "docs"
+    out = subprocess.run(
+        ["bash", str(REPO / "scripts" / "publish_results.sh"), str(tmp_path / "runs")],
+        env={"PATH": "/usr/bin:/bin", "PYTHON": str(broken_python), "RESULTS_DOCS_DIR": str(docs), "RESULTS_PAGE": ""},
+        capture_output=True, text=True, timeout=60, cwd=REPO,
+    )  # fmt: skip
+    assert out.returncode == 2, out.stdout + out.stderr
+    assert "the secret check" in out.stderr and "set PYTHON" in out.stderr, out.stderr
+    assert "look like they hold a secret" not in out.stderr
     assert not docs.exists()

@@ -155,7 +155,7 @@ def test_the_check_names_the_file_and_line_and_never_shows_the_secret(tmp_path, 
     clean.write_text("env:\n  kwargs:\n    api_key: '***'\n")
     leaky.write_text('{"at_step": 0}\n' + json.dumps({"command": f"sweeps --storage postgresql://u:{ENCODED}@h/db"}) + "\n")
     assert check_files([str(clean)]) == 0
-    assert check_files([str(clean), str(leaky)]) == 1
+    assert check_files([str(clean), str(leaky)]) == 3  # FOUND: not 1, which Python exits with on an error
     err = capsys.readouterr().err
     assert f"{leaky}:2: looks like a secret" in err and "postgresql://u:***@h/db" in err and ENCODED not in err
     assert check_files([str(tmp_path / "missing.json")]) == 2
