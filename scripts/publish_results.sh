@@ -62,6 +62,11 @@ aggregate() {  # OUT_NAME then group folders <env>/<algo> (those that exist)
 groups=$("$python" scripts/results_tables.py --groups)
 while read -r name folders; do
   read -r -a folders <<<"$folders"
+  # A group published from runs whose records are not here is left alone: aggregating it again would drop them.
+  if ! missing=$("$python" scripts/results_tables.py --docs-dir "$dst" --missing-runs "$name"); then
+    echo "== $name: left as published; its runs' records are not under $dst/runs: $(echo $missing | head -c 300)" >&2
+    continue
+  fi
   aggregate "$name" "${folders[@]/#/$dst/runs/}"
 done <<<"$groups"
 

@@ -16,6 +16,9 @@ Each row lists seeds 0, 1, 2 (0 to 4 in the overestimation table) and any furthe
 
     python scripts/results_tables.py [--docs-dir docs/assets/results] [--page docs/results.md] [--seeds 0 1 2]
     python scripts/results_tables.py --groups    # one line per group: its name, then its <env>/<algo> folders
+
+A group whose published aggregate was made from runs whose records are no longer under ``<docs dir>/runs`` (records
+of an earlier machine, say) is left as it is, aggregate and table: rewriting it would drop those runs from the page.
 """
 
 from __future__ import annotations
@@ -155,14 +158,41 @@ def table(docs_dir: Path, group: str, first: str, rows_of: list[tuple[str, str, 
     return "\n".join(rows)
 
 
+def missing_runs(docs_dir: Path, group: str) -> list[str]:
+    """The runs a group's published aggregate was made from whose records are not under ``<docs dir>/runs``.
+
+    Aggregating such a group again, or rewriting its table, would drop those runs from the page (or mix their numbers
+    with the progress of other runs): ``scripts/publish_results.sh`` and :func:`tables` leave such a group as it is.
+    """
+    per_seed = docs_dir / group / "per_seed.csv"
+    if not per_seed.is_file():
+        return []
+    missing = []
+    for run_dir in read_csv(per_seed).get("run_dir", pd.Series(dtype=str)).astype(str):
+        relative = run_dir.split("/runs/", 1)[-1]
+        if not (docs_dir / "runs" / relative).is_dir():
+            missing.append(relative)
+    return missing
+
+
 def tables(docs_dir: Path, seeds: list[int] | None) -> dict[str, str]:
+    """The page's tables, except those of groups whose published runs' records are missing (left as they are)."""
     ablation = [(name, "Hopper-v5", f"hopper/{algo}") for algo, name in ABLATION.items()]
     mujoco = [(env_id, env_id, f"{env}/td3") for env, env_id in MUJOCO.items()]
-    return {
-        "ABLATION": table(docs_dir, "hopper_ablation", "variant", ablation, seeds),
-        "MUJOCO": table(docs_dir, "td3x_mujoco", "env (TD3X, `algo=td3`)", mujoco, seeds),
-        "VALUE_BIAS": value_table(docs_dir, seeds),
+    made = {
+        "ABLATION": ("hopper_ablation", lambda: table(docs_dir, "hopper_ablation", "variant", ablation, seeds)),
+        "MUJOCO": ("td3x_mujoco", lambda: table(docs_dir, "td3x_mujoco", "env (TD3X, `algo=td3`)", mujoco, seeds)),
+        "VALUE_BIAS": ("value_bias", lambda: value_table(docs_dir, seeds)),
     }
+    filled = {}
+    for name, (group, make) in made.items():
+        if missing := missing_runs(docs_dir, group):
+            print(f"warning: table {name} left as it is: its aggregate ({group}) was made from runs whose records are "
+                  f"not under {docs_dir / 'runs'}: {', '.join(missing[:6])}{' ...' if len(missing) > 6 else ''}",
+                  file=sys.stderr)  # fmt: skip
+            continue
+        filled[name] = make()
+    return filled
 
 
 def fill(page: str, filled: dict[str, str]) -> str:
@@ -183,11 +213,19 @@ def main(argv: list[str] | None = None) -> int:
         "--seeds", type=int, nargs="+", default=None, help="the seeds every row lists (default: 0, 1, 2 and any other found)"
     )
     parser.add_argument("--groups", action="store_true", help="print the groups to aggregate and exit")
+    parser.add_argument(
+        "--missing-runs", metavar="GROUP", help="print the runs GROUP's aggregate was made from whose records are missing; "
+        "exit 3 when there are any"
+    )  # fmt: skip
     args = parser.parse_args(argv)
     if args.groups:
         for name, folders in GROUPS.items():
             print(name, *folders)
         return 0
+    if args.missing_runs:
+        missing = missing_runs(args.docs_dir, args.missing_runs)
+        print("\n".join(missing))
+        return 3 if missing else 0
     if not args.page.is_file():
         print(f"error: no page {args.page} to fill", file=sys.stderr)
         return 2

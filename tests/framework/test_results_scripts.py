@@ -124,3 +124,29 @@ def test_results_tables_refuse_a_page_without_markers(tmp_path):
                           "--page", str(page)], capture_output=True, text=True)
     assert out.returncode == 2 and "has no <!-- ABLATION -->" in out.stderr and "Traceback" not in out.stderr
     assert page.read_text() == "# Results\nno markers\n"
+
+
+def test_a_group_published_from_runs_not_here_is_left_as_it_is(tmp_path):
+    """Records of an earlier machine's runs are gone: the table and aggregate they made stay as published, rather
+    than being rewritten as 'not started' beside the old numbers (found on the real page, 2026-11-23)."""
+    group = tmp_path / "td3x_mujoco"
+    group.mkdir()
+    (group / "aggregate.csv").write_text("env_id,algo,n_runs,timesteps,final_mean\nAnt-v5,td3,1,200000,1427.5\n")
+    (group / "per_seed.csv").write_text(
+        "env_id,algo,seed,run_dir,timesteps,final_return\n"
+        f"Ant-v5,td3,0,/elsewhere/docs/assets/results/runs/ant/td3/seed0,200000,1427.5\n"
+    )
+    page = tmp_path / "results.md"
+    page.write_text("<!-- ABLATION -->\n<!-- /ABLATION -->\n<!-- MUJOCO -->\nkept\n<!-- /MUJOCO -->\n"
+                    "<!-- VALUE_BIAS -->\n<!-- /VALUE_BIAS -->\n")
+    script = [sys.executable, str(REPO / "scripts" / "results_tables.py"), "--docs-dir", str(tmp_path)]
+    missing = subprocess.run([*script, "--missing-runs", "td3x_mujoco"], capture_output=True, text=True)
+    assert missing.returncode == 3 and missing.stdout.split() == ["ant/td3/seed0"]
+    out = subprocess.run([*script, "--page", str(page)], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    assert "table MUJOCO left as it is" in out.stderr and "ant/td3/seed0" in out.stderr
+    assert "<!-- MUJOCO -->\nkept\n<!-- /MUJOCO -->" in page.read_text()  # untouched
+    assert "| Hopper-v5, TD3 (`td3`) | 0: not started" in page.read_text()  # the others are filled
+    # Once the records are back, the group is rewritten as usual.
+    (tmp_path / "runs" / "ant" / "td3" / "seed0").mkdir(parents=True)
+    assert subprocess.run([*script, "--missing-runs", "td3x_mujoco"], capture_output=True).returncode == 0
