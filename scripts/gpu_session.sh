@@ -63,5 +63,12 @@ else
   timeout 470 python3 -m pytest -q -p no:cacheprovider -n 14 --timeout 300 -rfEs --durations=10 -k "not wandb" tests \
     > "$OUT/suite.txt" 2>&1
   echo "suite rc=$?" >> "$OUT/suite.txt"
+  # run.py with cuda_graph on the GPU, killed halfway and resumed (not run on a GPU before 2026-11-23's session).
+  { timeout 60 python3 run.py debug=smoke env=hopper algo.cuda_graph=true logger=tensorboard progress_bar=false \
+      run_dir=/tmp/cuda_graph_run total_timesteps=3000 checkpoint.freq=1000 & pid=$!; sleep 40; kill -TERM $pid
+    wait $pid; echo "run.py cuda_graph stopped rc=$?"
+    timeout 120 python3 run.py resume=/tmp/cuda_graph_run; echo "run.py cuda_graph resumed rc=$?"
+    tail -n 3 /tmp/cuda_graph_run/evaluations.csv; grep -h "update:" /tmp/cuda_graph_run/run.log | tail -n 1; } \
+    >> "$OUT/suite.txt" 2>&1
   tail -n 60 "$OUT/suite.txt"
 fi
