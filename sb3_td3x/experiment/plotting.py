@@ -18,11 +18,11 @@ from sb3_td3x.experiment.envs import make_render_env
 LEARNING_CURVE_PNG = "learning_curve.png"
 
 
-
 def steps_axis(ax) -> None:
     """Label ``ax``'s x axis as environment steps, ticks written 50k, 100k, 1M (full numbers overlap at 200k)."""
     ax.set_xlabel("environment steps")
     ax.xaxis.set_major_formatter(EngFormatter(sep=""))
+
 
 def plot_learning_curve(history: list[dict[str, float]], path: Path, title: str) -> Path:
     """Mean evaluation return against environment steps, with a band of one standard deviation over episodes.
