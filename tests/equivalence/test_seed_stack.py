@@ -25,9 +25,7 @@ CHUNKS = (110, 110, 110)  # train() calls of 330 gradient steps in all, the lear
 
 def filled(seed: int, **kwargs) -> tuple[TD3X, GlobalRandomState]:
     """A model whose buffer holds COLLECT transitions, and the global random state its lone training starts from."""
-    # On the CPU also on a GPU machine (the states hold the CPU generators; tests/gpu runs the batch on CUDA).
-    kwargs = {"policy_kwargs": {"net_arch": [32, 32]}, "learning_rate": lambda progress: 1e-3 * progress,
-              "device": "cpu", **kwargs}
+    kwargs = {"policy_kwargs": {"net_arch": [32, 32]}, "learning_rate": lambda progress: 1e-3 * progress, **kwargs}
     model = TD3X("MlpPolicy", "Pendulum-v1", learning_starts=COLLECT, buffer_size=COLLECT, seed=seed, **kwargs)
     model.learn(COLLECT)  # collection only
     model.set_logger(configure(None, []))
@@ -107,7 +105,7 @@ def test_seeds_trained_together_compute_what_lone_runs_compute(tmp_path, seeds_p
     # model's policy.pth with 3 seeds, against 1.16 times here, where each tensor is a storage record of its own.)
     sizes = [zipfile.ZipFile(tmp_path / name).getinfo("policy.pth").file_size for name in ("batched.zip", "lone.zip")]
     assert sizes[0] < 1.3 * sizes[1]
-    loaded = TD3X.load(tmp_path / "batched.zip", device="cpu")
+    loaded = TD3X.load(tmp_path / "batched.zip")
     for a, b in zip(models[1].policy.state_dict().values(), loaded.policy.state_dict().values()):
         assert th.equal(a, b)
 
