@@ -10,9 +10,11 @@ The groups (which run folders are aggregated together, and under which name) are
 ``scripts/publish_results.sh`` reads them with ``--groups``. The overestimation table (``VALUE_BIAS``, the paper's
 Figure 1) comes from ``value_bias/value_bias.csv``: the critic's value estimate against the true value at the last
 evaluation, over the seeds whose evaluations measured it (runs made before ``eval.value_bias`` existed are said so).
+The TD3X-against-SB3 table (``HOPPER_SB3``) is followed by the difference between the two, from ``compare.csv``
+(a bootstrap interval and a permutation test over the seeds).
 
-Each row lists seeds 0, 1, 2 (0 to 4 in the overestimation table) and any further seed that has a run folder, unless
-``--seeds`` names them.
+Each row lists seeds 0, 1, 2 (0 to 4 in the overestimation and TD3X-against-SB3 tables) and any further seed that has
+a run folder, unless ``--seeds`` names them.
 
     python scripts/results_tables.py [--docs-dir docs/assets/results] [--page docs/results.md] [--seeds 0 1 2]
     python scripts/results_tables.py --groups    # one line per group: its name, then its <env>/<algo> folders
@@ -53,6 +55,8 @@ VALUE_BIAS_ROWS = [  # (row name, env id, run folder <env>/<algo>): the paper's 
     ("Walker2d-v5, DDPG (`ddpg`)", "Walker2d-v5", "walker2d/ddpg"),
 ]
 VALUE_BIAS_SEEDS = 5  # the paper's Figure 1 averages 5 runs
+HOPPER_SB3 = [("TD3X (`td3`)", "Hopper-v5", "hopper/td3"), ("SB3 `TD3` (`sb3_td3`)", "Hopper-v5", "hopper/sb3_td3")]
+HOPPER_SB3_SEEDS = 5
 VALUE_HEADER = [
     "| run | seeds: steps reached | steps | value estimate | true value | overestimation, mean (95% CI) "
     "| normalised bias, mean (95% CI) | overestimation per seed |",
@@ -99,9 +103,16 @@ def steps(n: int) -> str:
 
 
 def row(
-    name: str, aggregate: pd.DataFrame, per_seed: pd.DataFrame, env_id: str, algo: str, runs: Path, seeds: list[int] | None
+    name: str,
+    aggregate: pd.DataFrame,
+    per_seed: pd.DataFrame,
+    env_id: str,
+    algo: str,
+    runs: Path,
+    seeds: list[int] | None,
+    planned: int = 3,
 ) -> str:
-    progress = ", ".join(f"{seed}: {seed_progress(runs / f'seed{seed}')}" for seed in row_seeds(runs, seeds))
+    progress = ", ".join(f"{seed}: {seed_progress(runs / f'seed{seed}')}" for seed in row_seeds(runs, seeds, planned))
     found = aggregate[(aggregate["env_id"] == env_id) & (aggregate["algo"] == algo)] if len(aggregate) else aggregate
     if found.empty:
         return f"| {name} | {progress} | | | | |"
@@ -147,15 +158,47 @@ def value_table(docs_dir: Path, seeds: list[int] | None) -> str:
     return "\n".join(rows)
 
 
-def table(docs_dir: Path, group: str, first: str, rows_of: list[tuple[str, str, str]], seeds: list[int] | None) -> str:
+def table(
+    docs_dir: Path, group: str, first: str, rows_of: list[tuple[str, str, str]], seeds: list[int] | None, planned: int = 3
+) -> str:
     """One table: a row per (row name, env id, run folder <env>/<algo>), from the group's aggregate."""
     aggregate = read_csv(docs_dir / group / "aggregate.csv")
     per_seed = read_csv(docs_dir / group / "per_seed.csv")
     rows = [h.format(first=first) for h in HEADER]
     for name, env_id, folder in rows_of:
         algo = folder.split("/")[1]
-        rows.append(row(name, aggregate, per_seed, env_id, algo, docs_dir / "runs" / folder, seeds))
+        rows.append(row(name, aggregate, per_seed, env_id, algo, docs_dir / "runs" / folder, seeds, planned))
     return "\n".join(rows)
+
+
+def difference_table(docs_dir: Path, group: str, first: tuple[str, str, str], second: tuple[str, str, str]) -> str:
+    """The difference first minus second (row name, env id, run folder <env>/<algo> each) from the group's
+    ``compare.csv``: final return and mean return over all evaluations, 95% bootstrap interval, permutation p.
+    Empty while the two have no finished seeds to compare."""
+    (name_a, env_id, folder_a), (name_b, _, folder_b) = first, second
+    algo_a, algo_b = folder_a.split("/")[1], folder_b.split("/")[1]
+    compared = read_csv(docs_dir / group / "compare.csv")
+    if compared.empty or "algo_a" not in compared:
+        return ""
+    sign = 1.0
+    found = compared[(compared.env_id == env_id) & (compared.algo_a == algo_a) & (compared.algo_b == algo_b)]
+    if found.empty:  # compare.csv holds each pair once, in name order
+        sign = -1.0
+        found = compared[(compared.env_id == env_id) & (compared.algo_a == algo_b) & (compared.algo_b == algo_a)]
+    if found.empty:
+        return ""
+    r = found.iloc[0]
+    lines = [
+        f"| {name_a} minus {name_b} ({int(r.n_a) if sign > 0 else int(r.n_b)} against "
+        f"{int(r.n_b) if sign > 0 else int(r.n_a)} seeds) | difference of the means (95% CI) | permutation test p |",
+        "|---|---|---|",
+    ]
+    for what, label in (("final", f"final return ({steps(int(r.timesteps))})"),
+                        ("curve", f"mean return over all {int(r.n_evaluations)} evaluations")):
+        difference = sign * r[f"{what}_difference"]
+        low, high = sorted((sign * r[f"{what}_ci_low"], sign * r[f"{what}_ci_high"]))
+        lines.append(f"| {label} | {difference:+.1f} ({low:+.1f} to {high:+.1f}) | {r[f'{what}_p_value']:.2f} |")
+    return "\n".join(lines)
 
 
 def missing_runs(docs_dir: Path, group: str) -> list[str]:
@@ -175,11 +218,19 @@ def missing_runs(docs_dir: Path, group: str) -> list[str]:
     return missing
 
 
+def hopper_sb3_tables(docs_dir: Path, seeds: list[int] | None) -> str:
+    """TD3X against SB3's TD3 on Hopper: the two rows, then their difference (once both have finished seeds)."""
+    rows = table(docs_dir, "hopper_td3x_vs_sb3", "algo", HOPPER_SB3, seeds, HOPPER_SB3_SEEDS)
+    difference = difference_table(docs_dir, "hopper_td3x_vs_sb3", *HOPPER_SB3)
+    return f"{rows}\n\n{difference}" if difference else rows
+
+
 def tables(docs_dir: Path, seeds: list[int] | None) -> dict[str, str]:
     """The page's tables, except those of groups whose published runs' records are missing (left as they are)."""
     ablation = [(name, "Hopper-v5", f"hopper/{algo}") for algo, name in ABLATION.items()]
     mujoco = [(env_id, env_id, f"{env}/td3") for env, env_id in MUJOCO.items()]
     made = {
+        "HOPPER_SB3": ("hopper_td3x_vs_sb3", lambda: hopper_sb3_tables(docs_dir, seeds)),
         "ABLATION": ("hopper_ablation", lambda: table(docs_dir, "hopper_ablation", "variant", ablation, seeds)),
         "MUJOCO": ("td3x_mujoco", lambda: table(docs_dir, "td3x_mujoco", "env (TD3X, `algo=td3`)", mujoco, seeds)),
         "VALUE_BIAS": ("value_bias", lambda: value_table(docs_dir, seeds)),

@@ -15,11 +15,18 @@ Runs whose evaluations measured the critic's value (the ``evaluations.csv`` colu
 runs with these columns reached) and ``value_bias_<env>.png``: one panel per algo with the critic's estimate and
 the true value over training, as in Figure 1 of the TD3 paper. Runs without the columns (made before they existed)
 are left out of these two only.
+
+Where an environment has runs of two or more algos, each pair is compared in ``compare.csv``: the difference of
+their statistic (``algo_a`` minus ``algo_b``) of the final return and of the mean return over all evaluations
+(the area under the curve, divided by its length), each with a 95% bootstrap interval (each algo's seeds resampled
+on their own) and the p-value of a two-sided permutation test (exact up to 20,000 splits of the seeds), at the
+evaluation steps that both algos' runs have all reached.
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -36,12 +43,19 @@ from omegaconf import OmegaConf
 from sb3_td3x.experiment.callbacks import EVALUATIONS_CSV
 from sb3_td3x.experiment.plotting import steps_axis
 from sb3_td3x.experiment.runner import CONFIG_FILE
-from sb3_td3x.experiment.statistics import STATISTICS, iqm, mean  # noqa: F401  (iqm and mean: this module's API too)
+from sb3_td3x.experiment.statistics import (  # noqa: F401  (iqm and mean: this module's API too)
+    STATISTICS,
+    difference_ci,
+    iqm,
+    mean,
+    permutation_p_value,
+)
 from sb3_td3x.experiment.value_bias import VALUE_FIELDS
 
 # The value columns aggregated over seeds (value_states is a count, kept per run only)
 VALUE_METRICS = ("value_estimate", "true_value", "overestimation", "normalized_bias")
 VALUE_BIAS_CSV = "value_bias.csv"
+COMPARE_CSV = "compare.csv"
 
 
 def bootstrap_ci(
@@ -171,6 +185,40 @@ def aggregate_values(runs: pd.DataFrame, stat: str = "mean") -> tuple[pd.DataFra
     return pd.DataFrame(rows), curves
 
 
+def compare(curves: dict[tuple[str, str], pd.DataFrame], stat: str = "mean") -> pd.DataFrame:
+    """Every pair of algos of one env, from :func:`aggregate`'s curves: one row per pair (``algo_a`` before
+    ``algo_b`` in name order), the difference ``algo_a - algo_b`` of the statistic over seeds of
+
+    - ``final``: the return at the last evaluation step that every run of both algos reached, and
+    - ``curve``: each run's mean return over all the evaluation steps that every run of both reached,
+
+    each with its 95% bootstrap interval (``*_ci_low``, ``*_ci_high``) and permutation-test p-value (``*_p_value``).
+    """
+    statistic = STATISTICS[stat]
+    rows = []
+    for env_id in sorted({env_id for env_id, _ in curves}):
+        algos = sorted(algo for curve_env, algo in curves if curve_env == env_id)
+        for algo_a, algo_b in itertools.combinations(algos, 2):
+            table_a = curves[(env_id, algo_a)].attrs["per_seed"]  # (steps, runs)
+            table_b = curves[(env_id, algo_b)].attrs["per_seed"]
+            steps = table_a.index.intersection(table_b.index)
+            if steps.empty:
+                continue
+            row = {"env_id": env_id, "algo_a": algo_a, "algo_b": algo_b, "n_a": table_a.shape[1],
+                   "n_b": table_b.shape[1], "timesteps": int(steps.max()), "n_evaluations": len(steps)}
+            for name, a, b in (
+                ("final", table_a.loc[steps.max()], table_b.loc[steps.max()]),
+                ("curve", table_a.loc[steps].mean(axis=0), table_b.loc[steps].mean(axis=0)),
+            ):
+                a, b = a.to_numpy(dtype=float), b.to_numpy(dtype=float)
+                low, high = difference_ci(a, b, statistic)
+                row.update({f"{name}_a": float(statistic(a)), f"{name}_b": float(statistic(b)),
+                            f"{name}_difference": float(statistic(a) - statistic(b)), f"{name}_ci_low": low,
+                            f"{name}_ci_high": high, f"{name}_p_value": permutation_p_value(a, b, statistic)})
+            rows.append(row)
+    return pd.DataFrame(rows)
+
+
 def plot_value_curves(curves: dict[tuple[str, str], pd.DataFrame], stat: str, out_dir: Path) -> list[Path]:
     """One PNG per environment, one panel per algo: the critic's value estimate and the true discounted return of
     the visited states against steps, each with its 95% CI band over seeds (the TD3 paper's Figure 1)."""
@@ -251,6 +299,20 @@ def main(argv: list[str] | None = None) -> int:
     plots = plot_curves(curves, args.stat, out_dir)
     print(markdown)
     written = [out_dir / "aggregate.csv", out_dir / "aggregate.md", out_dir / "per_seed.csv", *plots]
+    differences = compare(curves, args.stat)
+    (out_dir / COMPARE_CSV).unlink(missing_ok=True)  # from an earlier call on other runs
+    if not differences.empty:
+        differences.to_csv(out_dir / COMPARE_CSV, index=False)
+        shown = differences[["env_id", "algo_a", "algo_b", "n_a", "n_b", "timesteps"]].copy()
+        for name in ("final", "curve"):
+            shown[f"{name}: a - b (95% CI)"] = [
+                f"{r[f'{name}_difference']:.1f} ({r[f'{name}_ci_low']:.1f} to {r[f'{name}_ci_high']:.1f})"
+                for _, r in differences.iterrows()
+            ]
+            shown[f"{name}: p"] = differences[f"{name}_p_value"].map(lambda p: f"{p:.3f}")
+        print(f"\nDifferences between algos ({args.stat} of a minus {args.stat} of b; final return, and mean return over"
+              " all evaluations; permutation-test p):\n" + to_markdown(shown))
+        written.append(out_dir / COMPARE_CSV)
     value_table, value_curves = aggregate_values(runs, args.stat)
     if not value_table.empty:
         value_table.to_csv(out_dir / VALUE_BIAS_CSV, index=False)

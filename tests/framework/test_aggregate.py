@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pandas as pd
 import pytest
 from omegaconf import OmegaConf
 
 from sb3_td3x.experiment.aggregate import bootstrap_ci, iqm, main
+from sb3_td3x.experiment.statistics import difference_ci, permutation_p_value
 
 
 def test_iqm_drops_the_lowest_and_highest_quarter():
@@ -24,6 +27,48 @@ def test_bootstrap_interval_brackets_the_mean_and_narrows_with_more_seeds():
     assert low_few <= few.mean() <= high_few and low_many <= many.mean() <= high_many
     assert high_many - low_many < high_few - low_few
     assert 9.0 < low_many < 10.0 < high_many < 11.0
+
+
+def brute_force_p_value(a, b, statistic=np.mean):
+    """The two-sided permutation p-value of the difference of ``statistic``, by a plain loop over every split."""
+    pooled, observed, splits, as_large = list(a) + list(b), abs(statistic(a) - statistic(b)), 0, 0
+    for first in itertools.combinations(range(len(pooled)), len(a)):
+        second = [i for i in range(len(pooled)) if i not in first]
+        splits += 1
+        difference = statistic(np.array([pooled[i] for i in first])) - statistic(np.array([pooled[i] for i in second]))
+        as_large += abs(difference) >= observed - 1e-9
+    return as_large / splits
+
+
+def test_permutation_test_counts_the_splits_at_least_as_far_apart():
+    # 3 against 3 wholly apart: only the observed split and its mirror are as far apart, 2 of the 20
+    assert permutation_p_value([1.0, 2.0, 3.0], [4.0, 5.0, 6.0]) == pytest.approx(0.1)
+    assert permutation_p_value([1.0, 2.0, 3.0], [1.0, 2.0, 3.0]) == 1.0  # no difference: every split is as far
+    rng = np.random.default_rng(3)
+    for n_a, n_b in ((5, 5), (4, 6), (2, 3)):
+        a, b = rng.normal(0, 1, n_a), rng.normal(0.8, 1, n_b)
+        assert permutation_p_value(a, b) == pytest.approx(brute_force_p_value(a, b))
+    # Too many splits to list (C(40, 20)): a Monte Carlo estimate, never 0, small for groups far apart
+    far = permutation_p_value(rng.normal(0, 1, 20), rng.normal(3, 1, 20), n_resamples=2000)
+    assert 0 < far <= 1 / 2001 + 1e-12
+    same = permutation_p_value(rng.normal(0, 1, 20), rng.normal(0, 1, 20), n_resamples=2000)
+    assert same > 0.01
+    # The statistic is the one given: one outlier seed decides every split's difference of means, not of IQMs
+    outlier, ones = [0.0, 0.0, 0.0, 0.0, 1000.0], [1.0] * 5
+    assert permutation_p_value(outlier, ones) == 1.0
+    assert permutation_p_value(outlier, ones, statistic=iqm) == pytest.approx(brute_force_p_value(outlier, ones, iqm))
+    assert permutation_p_value(outlier, ones, statistic=iqm) < 0.05
+
+
+def test_difference_interval_brackets_the_difference_and_excludes_zero_only_when_apart():
+    rng = np.random.default_rng(2)
+    a, b = rng.normal(10, 1, 10), rng.normal(5, 1, 10)
+    low, high = difference_ci(a, b)
+    assert 0 < low < a.mean() - b.mean() < high
+    low, high = difference_ci(b, a)
+    assert low < b.mean() - a.mean() < high < 0
+    low, high = difference_ci(rng.normal(0, 1, 10), rng.normal(0, 1, 10))
+    assert low < 0 < high
 
 
 def write_run(run_dir, env_id, algo, seed, returns):
@@ -50,6 +95,30 @@ def test_the_command_writes_a_table_and_one_plot_per_env(tmp_path, capsys):
     assert len(table) == 3
     assert (tmp_path / "out" / "aggregate_Hopper-v5.png").is_file() and (tmp_path / "out" / "aggregate_Ant-v5.png").is_file()
     assert "| Hopper-v5 | td3 | 3 | 3000 | 201.0 |" in capsys.readouterr().out
+
+
+def test_the_command_compares_each_pair_of_algos_of_an_env(tmp_path, capsys):
+    for seed in range(3):
+        write_run(tmp_path / "runs" / f"td3_{seed}", "Hopper-v5", "td3", seed, [10.0 * seed, 100.0 + seed, 200.0 + seed])
+        write_run(tmp_path / "runs" / f"ddpg_{seed}", "Hopper-v5", "ddpg", seed, [1.0, 2.0, 3.0 + seed, 4.0])
+    write_run(tmp_path / "runs" / "ant", "Ant-v5", "td3", 0, [5.0])  # one algo on Ant: nothing to compare
+    assert main([str(tmp_path / "runs"), "--out", str(tmp_path / "out")]) == 0
+    compared = pd.read_csv(tmp_path / "out" / "compare.csv")
+    assert len(compared) == 1
+    row = compared.iloc[0]
+    assert (row.env_id, row.algo_a, row.algo_b, row.n_a, row.n_b) == ("Hopper-v5", "ddpg", "td3", 3, 3)
+    assert row.timesteps == 3000 and row.n_evaluations == 3  # ddpg's 4th evaluation has no td3 one beside it
+    # final: ddpg 3, 4, 5 against td3 200, 201, 202; curve: each run's mean over the 3 shared evaluations
+    assert row.final_difference == pytest.approx(4.0 - 201.0) and row.final_p_value == pytest.approx(0.1)
+    assert row.final_ci_low <= -197.0 <= row.final_ci_high < 0
+    ddpg_curves = [(1.0 + 2.0 + 3.0 + s) / 3 for s in range(3)]
+    td3_curves = [(10.0 * s + 100.0 + s + 200.0 + s) / 3 for s in range(3)]
+    assert row.curve_difference == pytest.approx(np.mean(ddpg_curves) - np.mean(td3_curves))
+    assert row.curve_p_value == pytest.approx(brute_force_p_value(ddpg_curves, td3_curves))
+    assert "| Hopper-v5 | ddpg | td3 | 3 | 3 | 3000 | -197.0 (" in capsys.readouterr().out
+    # Aggregated again without a second algo, the folder keeps no comparison of the earlier runs
+    assert main([str(tmp_path / "runs" / "ant"), "--out", str(tmp_path / "out")]) == 0
+    assert not (tmp_path / "out" / "compare.csv").exists()
 
 
 def test_the_command_says_when_there_is_nothing_to_aggregate(tmp_path, capsys):

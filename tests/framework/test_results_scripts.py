@@ -72,8 +72,8 @@ def test_publish_copies_the_records_and_aggregates_them(tmp_path):
         running / "evaluations.csv", index=False)
     docs = tmp_path / "docs"
     page = tmp_path / "results.md"
-    page.write_text("# Results\n<!-- ABLATION -->\nold\n<!-- /ABLATION -->\ntext\n<!-- MUJOCO -->\n<!-- /MUJOCO -->\n"
-                    "<!-- VALUE_BIAS -->\n<!-- /VALUE_BIAS -->\n")
+    page.write_text("# Results\n<!-- HOPPER_SB3 -->\n<!-- /HOPPER_SB3 -->\n<!-- ABLATION -->\nold\n<!-- /ABLATION -->\n"
+                    "text\n<!-- MUJOCO -->\n<!-- /MUJOCO -->\n<!-- VALUE_BIAS -->\n<!-- /VALUE_BIAS -->\n")
     out = subprocess.run(
         ["bash", str(REPO / "scripts" / "publish_results.sh"), str(tmp_path / "runs")],
         cwd=tmp_path,  # the script works from the repository root whatever the caller's folder
@@ -100,6 +100,18 @@ def test_publish_copies_the_records_and_aggregates_them(tmp_path):
     # The page's tables are rewritten from the aggregates and the runs' records, between their markers
     lines = page.read_text().splitlines()
     assert "old" not in lines and "text" in lines
+    # TD3X against SB3: 5 seeds planned, then the difference of the finished ones from compare.csv
+    td3x = next(line for line in lines if line.startswith("| TD3X (`td3`) |"))
+    assert "| 0: 600, 1: 600, 2: 300 of 600, 3: not started, 4: not started | 600 |" in td3x, td3x
+    assert next(line for line in lines if line.startswith("| SB3 `TD3`")).count("not started") == 3
+    assert "| TD3X (`td3`) minus SB3 `TD3` (`sb3_td3`) (2 against 2 seeds) |" in page.read_text()
+    final = next(line for line in lines if line.startswith("| final return (600) |"))
+    finals = table.set_index("algo")["final_mean"]
+    assert float(final.split("|")[2].split()[0]) == pytest.approx(finals["td3"] - finals["sb3_td3"], abs=0.05)
+    compared = pd.read_csv(docs / "hopper_td3x_vs_sb3" / "compare.csv")
+    assert (compared.algo_a[0], compared.algo_b[0]) == ("sb3_td3", "td3")  # stored once, in name order; shown td3 first
+    assert float(final.split("|")[3]) == pytest.approx(compared.final_p_value[0], abs=0.005)
+    assert next(line for line in lines if line.startswith("| mean return over all ")).count("|") == 4
     td3 = next(line for line in lines if line.startswith("| TD3 (`td3`)"))
     assert "| 0: 600, 1: 600, 2: 300 of 600 | 600 |" in td3, td3
     assert next(line for line in lines if line.startswith("| DDPG")).count("not started") == 3
@@ -122,7 +134,7 @@ def test_results_tables_refuse_a_page_without_markers(tmp_path):
     page.write_text("# Results\nno markers\n")
     out = subprocess.run([sys.executable, str(REPO / "scripts" / "results_tables.py"), "--docs-dir", str(tmp_path),
                           "--page", str(page)], capture_output=True, text=True)
-    assert out.returncode == 2 and "has no <!-- ABLATION -->" in out.stderr and "Traceback" not in out.stderr
+    assert out.returncode == 2 and "has no <!-- HOPPER_SB3 -->" in out.stderr and "Traceback" not in out.stderr
     assert page.read_text() == "# Results\nno markers\n"
 
 
@@ -134,11 +146,11 @@ def test_a_group_published_from_runs_not_here_is_left_as_it_is(tmp_path):
     (group / "aggregate.csv").write_text("env_id,algo,n_runs,timesteps,final_mean\nAnt-v5,td3,1,200000,1427.5\n")
     (group / "per_seed.csv").write_text(
         "env_id,algo,seed,run_dir,timesteps,final_return\n"
-        f"Ant-v5,td3,0,/elsewhere/docs/assets/results/runs/ant/td3/seed0,200000,1427.5\n"
+        "Ant-v5,td3,0,/elsewhere/docs/assets/results/runs/ant/td3/seed0,200000,1427.5\n"
     )
     page = tmp_path / "results.md"
-    page.write_text("<!-- ABLATION -->\n<!-- /ABLATION -->\n<!-- MUJOCO -->\nkept\n<!-- /MUJOCO -->\n"
-                    "<!-- VALUE_BIAS -->\n<!-- /VALUE_BIAS -->\n")
+    page.write_text("<!-- HOPPER_SB3 -->\n<!-- /HOPPER_SB3 -->\n<!-- ABLATION -->\n<!-- /ABLATION -->\n"
+                    "<!-- MUJOCO -->\nkept\n<!-- /MUJOCO -->\n<!-- VALUE_BIAS -->\n<!-- /VALUE_BIAS -->\n")
     script = [sys.executable, str(REPO / "scripts" / "results_tables.py"), "--docs-dir", str(tmp_path)]
     missing = subprocess.run([*script, "--missing-runs", "td3x_mujoco"], capture_output=True, text=True)
     assert missing.returncode == 3 and missing.stdout.split() == ["ant/td3/seed0"]
