@@ -151,11 +151,17 @@ def value_row(name: str, values: pd.DataFrame, env_id: str, algo: str, runs: Pat
 
 
 def value_table(docs_dir: Path, seeds: list[int] | None) -> str:
+    """The overestimation table, then per env DDPG's overestimation minus TD3's (from ``value_bias_compare.csv``)."""
     values = read_csv(docs_dir / "value_bias" / "value_bias.csv")
     rows = list(VALUE_HEADER)
     for name, env_id, folder in VALUE_BIAS_ROWS:
         rows.append(value_row(name, values, env_id, folder.split("/")[1], docs_dir / "runs" / folder, seeds))
-    return "\n".join(rows)
+    tables = ["\n".join(rows)]
+    for env_id in dict.fromkeys(env_id for _, env_id, _ in VALUE_BIAS_ROWS):
+        env = next(folder.split("/")[0] for _, row_env, folder in VALUE_BIAS_ROWS if row_env == env_id)
+        ddpg, td3 = (f"{env_id}: DDPG (`ddpg`)", env_id, f"{env}/ddpg"), ("TD3 (`td3`)", env_id, f"{env}/td3")
+        tables.append(difference_table(docs_dir, "value_bias", ddpg, td3, "value_bias_compare.csv", "overestimation"))
+    return "\n\n".join(filter(None, tables))
 
 
 def table(
@@ -171,13 +177,20 @@ def table(
     return "\n".join(rows)
 
 
-def difference_table(docs_dir: Path, group: str, first: tuple[str, str, str], second: tuple[str, str, str]) -> str:
+def difference_table(
+    docs_dir: Path,
+    group: str,
+    first: tuple[str, str, str],
+    second: tuple[str, str, str],
+    csv: str = "compare.csv",
+    quantity: str = "return",
+) -> str:
     """The difference first minus second (row name, env id, run folder <env>/<algo> each) from the group's
-    ``compare.csv``: final return and mean return over all evaluations, 95% bootstrap interval, permutation p.
-    Empty while the two have no finished seeds to compare."""
+    ``compare.csv`` (or ``value_bias_compare.csv``, ``quantity="overestimation"``): the final value and the mean over
+    all evaluations, 95% bootstrap interval, permutation p. Empty while the two have no seeds to compare."""
     (name_a, env_id, folder_a), (name_b, _, folder_b) = first, second
     algo_a, algo_b = folder_a.split("/")[1], folder_b.split("/")[1]
-    compared = read_csv(docs_dir / group / "compare.csv")
+    compared = read_csv(docs_dir / group / csv)
     if compared.empty or "algo_a" not in compared:
         return ""
     sign = 1.0
@@ -189,15 +202,17 @@ def difference_table(docs_dir: Path, group: str, first: tuple[str, str, str], se
         return ""
     r = found.iloc[0]
     lines = [
-        f"| {name_a} minus {name_b} ({int(r.n_a) if sign > 0 else int(r.n_b)} against "
-        f"{int(r.n_b) if sign > 0 else int(r.n_a)} seeds) | difference of the means (95% CI) | permutation test p |",
+        f"| {name_a} minus {name_b} ({int(r.n_a) if sign > 0 else int(r.n_b)} seeds against "
+        f"{int(r.n_b) if sign > 0 else int(r.n_a)}) | difference of the means (95% CI) | permutation test p |",
         "|---|---|---|",
     ]
-    for what, label in (("final", f"final return ({steps(int(r.timesteps))})"),
-                        ("curve", f"mean return over all {int(r.n_evaluations)} evaluations")):
+    final = "final return" if quantity == "return" else f"{quantity} at the last step"
+    for what, label in (("final", f"{final} ({steps(int(r.timesteps))})"),
+                        ("curve", f"mean {quantity} over all {int(r.n_evaluations)} evaluations")):
         difference = sign * r[f"{what}_difference"]
         low, high = sorted((sign * r[f"{what}_ci_low"], sign * r[f"{what}_ci_high"]))
-        lines.append(f"| {label} | {difference:+.1f} ({low:+.1f} to {high:+.1f}) | {r[f'{what}_p_value']:.2f} |")
+        interval = "no interval with one seed" if pd.isna(low) else f"{low:+.1f} to {high:+.1f}"
+        lines.append(f"| {label} | {difference:+.1f} ({interval}) | {r[f'{what}_p_value']:.3f} |")
     return "\n".join(lines)
 
 

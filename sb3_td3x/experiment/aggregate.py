@@ -20,7 +20,8 @@ Where an environment has runs of two or more algos, each pair is compared in ``c
 their statistic (``algo_a`` minus ``algo_b``) of the final return and of the mean return over all evaluations
 (the area under the curve, divided by its length), each with a 95% bootstrap interval (each algo's seeds resampled
 on their own) and the p-value of a two-sided permutation test (exact up to 20,000 splits of the seeds), at the
-evaluation steps that both algos' runs have all reached.
+evaluation steps that both algos' runs have all reached. The critic's overestimation is compared the same way in
+``value_bias_compare.csv`` (its value at the last step, and its mean over all evaluations).
 """
 
 from __future__ import annotations
@@ -56,6 +57,7 @@ from sb3_td3x.experiment.value_bias import VALUE_FIELDS
 VALUE_METRICS = ("value_estimate", "true_value", "overestimation", "normalized_bias")
 VALUE_BIAS_CSV = "value_bias.csv"
 COMPARE_CSV = "compare.csv"
+VALUE_COMPARE_CSV = "value_bias_compare.csv"
 
 
 def bootstrap_ci(
@@ -170,6 +172,7 @@ def aggregate_values(runs: pd.DataFrame, stat: str = "mean") -> tuple[pd.DataFra
         run_dirs = list(tables["value_estimate"].columns)
         curve.attrs["label"] = f"{algo} ({', '.join(classes)})" if classes else algo
         curve.attrs["n_runs"] = len(run_dirs)
+        curve.attrs["per_seed"] = tables["overestimation"].reindex(index=steps, columns=run_dirs)  # for compare()
         curves[(env_id, algo)] = curve
         final = curve.iloc[-1]
         seed_of = group.drop_duplicates("run_dir").set_index("run_dir")["seed"]
@@ -186,13 +189,15 @@ def aggregate_values(runs: pd.DataFrame, stat: str = "mean") -> tuple[pd.DataFra
 
 
 def compare(curves: dict[tuple[str, str], pd.DataFrame], stat: str = "mean") -> pd.DataFrame:
-    """Every pair of algos of one env, from :func:`aggregate`'s curves: one row per pair (``algo_a`` before
-    ``algo_b`` in name order), the difference ``algo_a - algo_b`` of the statistic over seeds of
+    """Every pair of algos of one env, from :func:`aggregate`'s (or :func:`aggregate_values`') curves: one row per
+    pair (``algo_a`` before ``algo_b`` in name order), the difference ``algo_a - algo_b`` of the statistic over seeds
+    of the curves' per-seed values (``attrs["per_seed"]``, (steps, runs): the return, or the overestimation):
 
-    - ``final``: the return at the last evaluation step that every run of both algos reached, and
-    - ``curve``: each run's mean return over all the evaluation steps that every run of both reached,
+    - ``final``: the value at the last evaluation step that every run of both algos reached, and
+    - ``curve``: each run's mean value over all the evaluation steps that every run of both reached,
 
-    each with its 95% bootstrap interval (``*_ci_low``, ``*_ci_high``) and permutation-test p-value (``*_p_value``).
+    each with its 95% bootstrap interval (``*_ci_low``, ``*_ci_high``; NaN when one of the two has a single seed)
+    and permutation-test p-value (``*_p_value``).
     """
     statistic = STATISTICS[stat]
     rows = []
@@ -211,7 +216,8 @@ def compare(curves: dict[tuple[str, str], pd.DataFrame], stat: str = "mean") -> 
                 ("curve", table_a.loc[steps].mean(axis=0), table_b.loc[steps].mean(axis=0)),
             ):
                 a, b = a.to_numpy(dtype=float), b.to_numpy(dtype=float)
-                low, high = difference_ci(a, b, statistic)
+                # One seed has no spread to resample: an interval would pass for one that covers both algos' seeds
+                low, high = difference_ci(a, b, statistic) if min(len(a), len(b)) > 1 else (np.nan, np.nan)
                 row.update({f"{name}_a": float(statistic(a)), f"{name}_b": float(statistic(b)),
                             f"{name}_difference": float(statistic(a) - statistic(b)), f"{name}_ci_low": low,
                             f"{name}_ci_high": high, f"{name}_p_value": permutation_p_value(a, b, statistic)})
@@ -303,15 +309,7 @@ def main(argv: list[str] | None = None) -> int:
     (out_dir / COMPARE_CSV).unlink(missing_ok=True)  # from an earlier call on other runs
     if not differences.empty:
         differences.to_csv(out_dir / COMPARE_CSV, index=False)
-        shown = differences[["env_id", "algo_a", "algo_b", "n_a", "n_b", "timesteps"]].copy()
-        for name in ("final", "curve"):
-            shown[f"{name}: a - b (95% CI)"] = [
-                f"{r[f'{name}_difference']:.1f} ({r[f'{name}_ci_low']:.1f} to {r[f'{name}_ci_high']:.1f})"
-                for _, r in differences.iterrows()
-            ]
-            shown[f"{name}: p"] = differences[f"{name}_p_value"].map(lambda p: f"{p:.3f}")
-        print(f"\nDifferences between algos ({args.stat} of a minus {args.stat} of b; final return, and mean return over"
-              " all evaluations; permutation-test p):\n" + to_markdown(shown))
+        print_differences(differences, args.stat, "final return, and mean return over all evaluations")
         written.append(out_dir / COMPARE_CSV)
     value_table, value_curves = aggregate_values(runs, args.stat)
     if not value_table.empty:
@@ -320,8 +318,28 @@ def main(argv: list[str] | None = None) -> int:
         shown["normalized_bias"] = shown["normalized_bias"].map(lambda value: f"{value:.3f}")  # a ratio: 3 decimals
         print("\nValue estimate against true value (the critic's overestimation):\n" + to_markdown(shown))
         written += [out_dir / VALUE_BIAS_CSV, *plot_value_curves(value_curves, args.stat, out_dir)]
+    (out_dir / VALUE_COMPARE_CSV).unlink(missing_ok=True)
+    value_differences = compare(value_curves, args.stat)
+    if not value_differences.empty:
+        value_differences.to_csv(out_dir / VALUE_COMPARE_CSV, index=False)
+        print_differences(value_differences, args.stat, "overestimation at the last step, and mean over all evaluations")
+        written.append(out_dir / VALUE_COMPARE_CSV)
     print(f"\nWrote {', '.join(map(str, written))}")
     return 0
+
+
+def print_differences(differences: pd.DataFrame, stat: str, what: str) -> None:
+    """Print :func:`compare`'s table: each difference with its 95% interval, and its permutation-test p."""
+    shown = differences[["env_id", "algo_a", "algo_b", "n_a", "n_b", "timesteps"]].copy()
+    for name in ("final", "curve"):
+        shown[f"{name}: a - b (95% CI)"] = [
+            f"{r[f'{name}_difference']:.1f} ("
+            + ("one seed, no interval" if np.isnan(r[f"{name}_ci_low"]) else f"{r[f'{name}_ci_low']:.1f} to {r[f'{name}_ci_high']:.1f}")
+            + ")"
+            for _, r in differences.iterrows()
+        ]
+        shown[f"{name}: p"] = differences[f"{name}_p_value"].map(lambda p: f"{p:.3f}")
+    print(f"\nDifferences between algos ({stat} of a minus {stat} of b; {what}; permutation-test p):\n" + to_markdown(shown))
 
 
 def to_markdown(table: pd.DataFrame) -> str:

@@ -156,9 +156,18 @@ def test_the_value_columns_are_aggregated_over_seeds_and_runs_without_them_still
     assert td3.normalized_bias == pytest.approx(-0.2)
     assert (tmp_path / "out" / "value_bias_Hopper-v5.png").is_file()
     assert "| Hopper-v5 | ddpg | 3 | 3000 | 42.0 | 20.0 | 22.0 | 1.100 | 20.0, 22.0, 24.0 |" in capsys.readouterr().out
+    # DDPG's overestimation against TD3's: at the last step (22 against -2), and over the steps both measured (td3's
+    # NaN at 2000 leaves 1000 and 3000: ddpg 10 then 20, 22, 24; td3 -5 then -2); 3 seeds against 1: 4 splits
+    compared = pd.read_csv(tmp_path / "out" / "value_bias_compare.csv").iloc[0]
+    assert (compared.algo_a, compared.algo_b, compared.n_a, compared.n_b) == ("ddpg", "td3", 3, 1)
+    assert compared.n_evaluations == 2 and compared.final_difference == pytest.approx(24.0)
+    assert compared.curve_difference == pytest.approx(np.mean([15.0, 16.0, 17.0]) - (-3.5))
+    assert compared.final_p_value == pytest.approx(0.25)  # td3's lone seed is the farthest of the 4
+    assert np.isnan(compared.final_ci_low) and np.isnan(compared.curve_ci_high)  # one td3 seed: no spread to resample
 
 
 def test_runs_without_the_value_columns_write_no_value_table(tmp_path):
     write_run(tmp_path / "runs" / "old", "Hopper-v5", "td3", 0, [1.0, 2.0])
     assert main([str(tmp_path / "runs"), "--out", str(tmp_path / "out")]) == 0
     assert (tmp_path / "out" / "aggregate.csv").is_file() and not (tmp_path / "out" / "value_bias.csv").exists()
+    assert not (tmp_path / "out" / "value_bias_compare.csv").exists()

@@ -104,7 +104,7 @@ def test_publish_copies_the_records_and_aggregates_them(tmp_path):
     td3x = next(line for line in lines if line.startswith("| TD3X (`td3`) |"))
     assert "| 0: 600, 1: 600, 2: 300 of 600, 3: not started, 4: not started | 600 |" in td3x, td3x
     assert next(line for line in lines if line.startswith("| SB3 `TD3`")).count("not started") == 3
-    assert "| TD3X (`td3`) minus SB3 `TD3` (`sb3_td3`) (2 against 2 seeds) |" in page.read_text()
+    assert "| TD3X (`td3`) minus SB3 `TD3` (`sb3_td3`) (2 seeds against 2) |" in page.read_text()
     final = next(line for line in lines if line.startswith("| final return (600) |"))
     finals = table.set_index("algo")["final_mean"]
     assert float(final.split("|")[2].split()[0]) == pytest.approx(finals["td3"] - finals["sb3_td3"], abs=0.05)
@@ -162,3 +162,24 @@ def test_a_group_published_from_runs_not_here_is_left_as_it_is(tmp_path):
     # Once the records are back, the group is rewritten as usual.
     (tmp_path / "runs" / "ant" / "td3" / "seed0").mkdir(parents=True)
     assert subprocess.run([*script, "--missing-runs", "td3x_mujoco"], capture_output=True).returncode == 0
+
+
+def test_the_overestimation_table_is_followed_by_ddpg_minus_td3(tmp_path):
+    (tmp_path / "value_bias").mkdir()
+    (tmp_path / "value_bias" / "value_bias_compare.csv").write_text(
+        "env_id,algo_a,algo_b,n_a,n_b,timesteps,n_evaluations,final_difference,final_ci_low,final_ci_high,final_p_value,"
+        "curve_difference,curve_ci_low,curve_ci_high,curve_p_value\n"
+        "Hopper-v5,ddpg,td3,5,4,200000,40,299.64,133.3,522.0,0.0079,258.7,202.1,343.9,0.0159\n"
+    )
+    page = tmp_path / "results.md"
+    page.write_text("<!-- HOPPER_SB3 -->\n<!-- /HOPPER_SB3 -->\n<!-- ABLATION -->\n<!-- /ABLATION -->\n"
+                    "<!-- MUJOCO -->\n<!-- /MUJOCO -->\n<!-- VALUE_BIAS -->\n<!-- /VALUE_BIAS -->\n")
+    out = subprocess.run([sys.executable, str(REPO / "scripts" / "results_tables.py"), "--docs-dir", str(tmp_path),
+                          "--page", str(page)], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    text = page.read_text()
+    assert "| Hopper-v5: DDPG (`ddpg`) minus TD3 (`td3`) (5 seeds against 4) |" in text
+    assert "| overestimation at the last step (200k) | +299.6 (+133.3 to +522.0) | 0.008 |" in text
+    assert "| mean overestimation over all 40 evaluations | +258.7 (+202.1 to +343.9) | 0.016 |" in text
+    assert "Walker2d-v5: DDPG" not in text  # no Walker2d runs compared: no table for it
+    assert "minus SB3" not in text  # nor for TD3X against SB3
