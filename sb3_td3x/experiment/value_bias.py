@@ -126,6 +126,32 @@ def kept_states(length: int, terminated: bool, gamma: float, tolerance: float) -
     return int(np.count_nonzero(gamma**remaining <= tolerance))
 
 
+def no_state_reason(episodes: list[Episode], gamma: float, tolerance: float) -> str | None:
+    """Why no state was kept, with what to change, when every episode was truncated too short for the tolerance
+    (Pendulum-v1's 200 steps with gamma 0.99 and the default 0.01); None otherwise."""
+    if not episodes or any(episode.terminated for episode in episodes):
+        return None
+    longest = max(len(episode) for episode in episodes)
+    if longest == 0:
+        return None
+    cut = f"every evaluation episode was cut by its time limit, the longest after {longest} steps"
+    off = "eval.value_bias=false switches the measurement off"
+    if gamma >= 1.0:
+        return f"{cut}, and with gamma {gamma:g} the return missing beyond the cut never shrinks; {off}"
+    weight = gamma**longest  # of the missing tail, for the first state of the longest episode
+    digits = 2 - math.floor(math.log10(weight)) if weight > 0 else 0
+    suggested = math.ceil(weight * 10**digits) / 10**digits  # rounded up: it does keep that state
+    needed = (
+        f"a state needs {math.ceil(math.log(tolerance) / math.log(gamma))} steps before the cut for the missing tail "
+        f"to weigh gamma^k <= {tolerance:g}" if 0 < tolerance < 1 else f"a tolerance of {tolerance:g} keeps no such state"
+    )  # fmt: skip
+    return (
+        f"{cut}, and {needed} (gamma {gamma:g}, eval.value_horizon_tolerance={tolerance:g}). To measure anyway, "
+        f"eval.value_horizon_tolerance={suggested:g} keeps at least the first state of the longest one, whose true value then "
+        f"leave out up to {suggested:g} of the discounted return beyond the cut; or {off}"
+    )
+
+
 def summarize(estimates: np.ndarray, true_values: np.ndarray) -> tuple[dict[str, float], str | None]:
     """The logged numbers from per-state estimates and true values; and why ``normalized_bias`` is NaN, if it is."""
     n = len(true_values)
@@ -179,7 +205,8 @@ def measure_value_bias(model: Any, episodes: list[Episode], tolerance: float) ->
             done[-1] = 1.0
         dones.append(done)
     if not true_values:
-        return summarize(np.zeros(0), np.zeros(0))
+        values, reason = summarize(np.zeros(0), np.zeros(0))
+        return values, no_state_reason(episodes, gamma, tolerance) or reason
     estimates = critic_estimates(
         model, observations, next_observations, np.stack(actions), np.concatenate(rewards), np.concatenate(dones)
     )

@@ -234,6 +234,28 @@ def test_no_state_to_measure_is_nan_not_zero(tmp_path):
     assert json.loads((tmp_path / "evaluations.json").read_text())[0]["value_estimate"] is None  # strict JSON
 
 
+def test_no_state_says_which_tolerance_would_keep_one():
+    """Every episode truncated before a state's tail is small enough (Pendulum-v1 with the defaults): the reason
+    names the tolerance that keeps a state, and that tolerance does keep one."""
+    model = make_model()
+    truncated = hand_made_episodes()[1]  # 4 steps, gamma 0.5: the first state's missing tail weighs 0.5^4 = 0.0625
+    values, reason = measure_value_bias(model, [truncated], 0.01)
+    assert values["value_states"] == 0 and "the longest after 4 steps" in reason and "needs 7 steps" in reason
+    suggested = float(reason.split("eval.value_horizon_tolerance=")[2].split()[0])
+    assert suggested == 0.0625 and "eval.value_bias=false" in reason
+    assert measure_value_bias(model, [truncated], suggested)[0]["value_states"] == 1
+    # 5 steps: 0.5^5 = 0.03125, said with 3 digits rounded up (0.0313), which keeps the state (0.0312 would not)
+    longer = Episode([*truncated.observations, truncated.final_observation], [*truncated.actions, truncated.actions[0]],
+                     [*truncated.rewards, 1.0], truncated.final_observation, False)  # fmt: skip
+    _, reason = measure_value_bias(model, [longer], 0.01)
+    suggested = float(reason.split("eval.value_horizon_tolerance=")[2].split()[0])
+    assert suggested == 0.0313 and measure_value_bias(model, [longer], suggested)[0]["value_states"] == 1
+    # A terminated episode among them: its states count, no such advice
+    terminated = hand_made_episodes()[0]
+    values, reason = measure_value_bias(model, [terminated, truncated], 0.01)
+    assert values["value_states"] == len(terminated) and (reason is None or "time limit" not in reason)
+
+
 def test_a_resumed_history_without_the_columns_is_written_with_empty_cells(tmp_path):
     callback = evaluation(tmp_path, make_model(), value_horizon_tolerance=TOLERANCE)
     old = {"timesteps": 1, "mean_return": 3.0, "std_return": 0.0, "mean_length": 4.0, "wall_time": 0.0}
