@@ -157,8 +157,8 @@ def value_table(docs_dir: Path, seeds: list[int] | None) -> str:
     for name, env_id, folder in VALUE_BIAS_ROWS:
         rows.append(value_row(name, values, env_id, folder.split("/")[1], docs_dir / "runs" / folder, seeds))
     tables = ["\n".join(rows)]
-    for env_id in dict.fromkeys(env_id for _, env_id, _ in VALUE_BIAS_ROWS):
-        env = next(folder.split("/")[0] for _, row_env, folder in VALUE_BIAS_ROWS if row_env == env_id)
+    for env in dict.fromkeys(folder.split("/")[0] for _, _, folder in VALUE_BIAS_ROWS):
+        env_id = MUJOCO[env]
         ddpg, td3 = (f"{env_id}: DDPG (`ddpg`)", env_id, f"{env}/ddpg"), ("TD3 (`td3`)", env_id, f"{env}/td3")
         tables.append(difference_table(docs_dir, "value_bias", ddpg, td3, "value_bias_compare.csv", "overestimation"))
     return "\n\n".join(filter(None, tables))
@@ -201,9 +201,9 @@ def difference_table(
     if found.empty:
         return ""
     r = found.iloc[0]
+    n_a, n_b = (int(r.n_a), int(r.n_b)) if sign > 0 else (int(r.n_b), int(r.n_a))
     lines = [
-        f"| {name_a} minus {name_b} ({int(r.n_a) if sign > 0 else int(r.n_b)} seeds against "
-        f"{int(r.n_b) if sign > 0 else int(r.n_a)}) | difference of the means (95% CI) | permutation test p |",
+        f"| {name_a} minus {name_b} ({n_a} seeds against {n_b}) | difference of the means (95% CI) | permutation test p |",
         "|---|---|---|",
     ]
     final = "final return" if quantity == "return" else f"{quantity} at the last step"

@@ -305,12 +305,7 @@ def main(argv: list[str] | None = None) -> int:
     plots = plot_curves(curves, args.stat, out_dir)
     print(markdown)
     written = [out_dir / "aggregate.csv", out_dir / "aggregate.md", out_dir / "per_seed.csv", *plots]
-    differences = compare(curves, args.stat)
-    (out_dir / COMPARE_CSV).unlink(missing_ok=True)  # from an earlier call on other runs
-    if not differences.empty:
-        differences.to_csv(out_dir / COMPARE_CSV, index=False)
-        print_differences(differences, args.stat, "final return, and mean return over all evaluations")
-        written.append(out_dir / COMPARE_CSV)
+    written += write_differences(curves, args.stat, out_dir / COMPARE_CSV, "final return, and mean return over all evaluations")
     value_table, value_curves = aggregate_values(runs, args.stat)
     if not value_table.empty:
         value_table.to_csv(out_dir / VALUE_BIAS_CSV, index=False)
@@ -318,14 +313,23 @@ def main(argv: list[str] | None = None) -> int:
         shown["normalized_bias"] = shown["normalized_bias"].map(lambda value: f"{value:.3f}")  # a ratio: 3 decimals
         print("\nValue estimate against true value (the critic's overestimation):\n" + to_markdown(shown))
         written += [out_dir / VALUE_BIAS_CSV, *plot_value_curves(value_curves, args.stat, out_dir)]
-    (out_dir / VALUE_COMPARE_CSV).unlink(missing_ok=True)
-    value_differences = compare(value_curves, args.stat)
-    if not value_differences.empty:
-        value_differences.to_csv(out_dir / VALUE_COMPARE_CSV, index=False)
-        print_differences(value_differences, args.stat, "overestimation at the last step, and mean over all evaluations")
-        written.append(out_dir / VALUE_COMPARE_CSV)
+    written += write_differences(
+        value_curves, args.stat, out_dir / VALUE_COMPARE_CSV, "overestimation at the last step, and mean over all evaluations"
+    )
     print(f"\nWrote {', '.join(map(str, written))}")
     return 0
+
+
+def write_differences(curves: dict[tuple[str, str], pd.DataFrame], stat: str, path: Path, what: str) -> list[Path]:
+    """:func:`compare` the curves' algos into ``path`` and print the table; no file (an earlier call's removed) when
+    no env has two algos. Returns the paths written."""
+    path.unlink(missing_ok=True)  # from an earlier call on other runs
+    differences = compare(curves, stat)
+    if differences.empty:
+        return []
+    differences.to_csv(path, index=False)
+    print_differences(differences, stat, what)
+    return [path]
 
 
 def print_differences(differences: pd.DataFrame, stat: str, what: str) -> None:
