@@ -10,10 +10,12 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
+from gymnasium import spaces
 from hydra.utils import get_class
 from omegaconf import DictConfig
 from stable_baselines3 import TD3
 from stable_baselines3.common.noise import NormalActionNoise
+from stable_baselines3.common.preprocessing import is_image_space
 from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_td3x import TD3X
@@ -72,7 +74,29 @@ def build_algorithm(cfg: DictConfig, env: VecEnv) -> TD3X | TD3:
     """A fresh algorithm for ``env``; a ``ValueError`` of the constructor becomes a :class:`ConfigError`."""
     cls = algorithm_class(cfg.algo)
     kwargs = algorithm_kwargs(cfg.algo, n_actions=int(np.prod(env.action_space.shape)))
+    _check_policy(cfg.algo.policy, env.observation_space, cfg.env.id)
     try:
         return cls(cfg.algo.policy, env, seed=cfg.seed, device=cfg.device, **kwargs)
     except ValueError as error:
         raise ConfigError(f"The algorithm rejected the config: {error}") from None
+    except MemoryError:
+        raise ConfigError(
+            f"algo.buffer_size={cfg.algo.buffer_size}: the replay buffer could not be allocated (out of memory). "
+            "Lower algo.buffer_size."
+        ) from None
+
+
+def _check_policy(policy: str, observation_space: spaces.Space, env_id: str) -> None:
+    """SB3's policy names against the observations they need: ``CnnPolicy`` images, ``MultiInputPolicy`` a Dict."""
+    if policy == "CnnPolicy" and not is_image_space(observation_space, check_channels=False):
+        raise ConfigError(
+            f"algo.policy=CnnPolicy needs image observations, but {env_id} observes {observation_space}. "
+            "Use algo.policy=MlpPolicy for vector observations."
+        )
+    if policy == "MultiInputPolicy" and not isinstance(observation_space, spaces.Dict):
+        raise ConfigError(
+            f"algo.policy=MultiInputPolicy needs Dict observations, but {env_id} observes {observation_space}. "
+            "Use algo.policy=MlpPolicy."
+        )
+    if policy == "MlpPolicy" and isinstance(observation_space, spaces.Dict):
+        raise ConfigError(f"{env_id} observes a Dict ({observation_space}); use algo.policy=MultiInputPolicy.")

@@ -157,7 +157,7 @@ class PeriodicEvaluation(BaseCallback):
     def _write_history(self) -> None:
         # NaN (a value measurement without states) as null: strict JSON readers refuse NaN
         rows = [{key: None if isinstance(v, float) and math.isnan(v) else v for key, v in row.items()} for row in self.history]
-        _write_atomically(self.run_dir / EVALUATIONS_JSON, json.dumps(rows, indent=1))
+        write_atomically(self.run_dir / EVALUATIONS_JSON, json.dumps(rows, indent=1))
         # the value columns when any row has them; rows without them (before a resume) get empty cells
         fields = EVALUATION_FIELDS + tuple(key for key in VALUE_FIELDS if any(key in row for row in self.history))
         tmp = self.run_dir / (EVALUATIONS_CSV + ".tmp")
@@ -176,6 +176,7 @@ class Checkpointer(BaseCallback):
     written, then :class:`TrainingInterrupted` is raised out of ``learn()``.
 
     :param experiment_state: returns the picklable state saved next to the model (evaluation history, ...)
+    :param config: the run's resolved config, kept in each checkpoint's ``meta.json`` (what a resume is checked against)
     """
 
     def __init__(
@@ -185,9 +186,11 @@ class Checkpointer(BaseCallback):
         experiment_state: Callable[[], dict[str, Any]],
         save_best: bool = True,
         best_replay_buffer: bool = False,
+        config: dict[str, Any] | None = None,
     ) -> None:
         super().__init__()
         self.run_dir = run_dir
+        self.config = config
         self.freq = freq
         self.experiment_state = experiment_state
         self.save_best = save_best
@@ -219,12 +222,14 @@ class Checkpointer(BaseCallback):
 
     def save_last(self) -> Path:
         self.last_saved_timesteps = self.num_timesteps
-        return save_checkpoint(checkpoint_dir(self.run_dir, LAST), self.model, self.experiment_state())
+        return save_checkpoint(checkpoint_dir(self.run_dir, LAST), self.model, self.experiment_state(), config=self.config)
 
     def on_evaluation(self, result: dict[str, float]) -> None:
         if self.save_best and result["mean_return"] > self.best_mean_return:
             self.best_mean_return = result["mean_return"]
-            save_checkpoint(checkpoint_dir(self.run_dir, BEST), self.model, self.experiment_state(), self.best_replay_buffer)
+            save_checkpoint(
+                checkpoint_dir(self.run_dir, BEST), self.model, self.experiment_state(), self.best_replay_buffer, self.config
+            )
 
 
 class DivergenceCheck(BaseCallback):
@@ -309,7 +314,12 @@ class StopOnSignal:
         self._restore()
 
 
-def _write_atomically(path: Path, text: str) -> None:
+def write_atomically(path: Path, text: str) -> None:
+    """Replace ``path`` with ``text`` whole: a reader (or a crash) sees the old file or the new one, never a part."""
     tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
+    try:
+        tmp.write_text(text)
+        os.replace(tmp, path)
+    except OSError:
+        tmp.unlink(missing_ok=True)
+        raise

@@ -8,23 +8,30 @@ A checkpoint is a folder (``<run_dir>/checkpoints/last`` or ``.../best``) holdin
 - ``state.pkl``: what SB3's save leaves out and an exact continuation needs: the random number generators
   (python, numpy, torch, the action space's sampler), the state of every training environment *within* its
   episode (wrappers, MuJoCo's ``MjData``) and the experiment's own state (evaluation history, best return),
-- ``meta.json``: the step count and the file list, written last.
+- ``meta.json``: the step count, the config the run trained with, and each file's size and SHA-256, written last.
 
-Writing is atomic: everything goes to ``<name>.tmp`` first, then ``<name>`` is moved to ``<name>.prev``, the
-new folder takes its place, and ``.prev`` is removed. Whatever moment the process dies at, a complete
-checkpoint exists under ``<name>`` or, between the two renames, under ``<name>.prev``; :func:`find_checkpoint`
-looks at both.
+Writing survives any single fault. Everything goes to ``<name>.tmp`` first and is flushed to disk; then the
+older ``<name>.prev`` is removed, ``<name>`` becomes ``<name>.prev``, ``<name>.tmp`` becomes ``<name>``, and the
+folder's entries are flushed. So besides the newest checkpoint the one before it is kept, with its replay buffer.
+Loading (:func:`load_resumable`) checks every file against ``meta.json`` and takes the newest checkpoint that is
+whole: ``<name>``, a complete ``<name>.tmp`` (a save cut between its renames) or ``<name>.prev``.
 """
 
 from __future__ import annotations
 
+import errno
+import hashlib
 import json
+import logging
 import os
 import pickle
 import random
 import shutil
 import time
 import warnings
+import zipfile
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -35,7 +42,9 @@ from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecNormalize
 
-from sb3_td3x.experiment.errors import ConfigError
+from sb3_td3x.experiment.errors import ConfigError, RunFilesNotWritten
+
+log = logging.getLogger(__name__)
 
 LAST = "last"
 BEST = "best"
@@ -45,6 +54,7 @@ REPLAY_BUFFER_FILE = "replay_buffer.pkl"
 VECNORMALIZE_FILE = "vecnormalize.pkl"
 STATE_FILE = "state.pkl"
 META_FILE = "meta.json"
+DAMAGED = ".damaged"  # suffix of a checkpoint found damaged, kept for inspection
 
 
 def checkpoint_dir(run_dir: Path, name: str) -> Path:
@@ -57,27 +67,62 @@ def seed_run_dir(run_dir: Path | str, seed: int) -> Path:
     return Path(run_dir) / f"seed{seed}"
 
 
-def save_checkpoint(target: Path, model: OffPolicyAlgorithm, experiment_state: dict[str, Any], replay_buffer: bool = True) -> Path:
-    """Write a complete checkpoint of ``model`` to the folder ``target``, atomically (see the module docstring).
+def _sibling(target: Path, suffix: str) -> Path:
+    return target.with_name(target.name + suffix)
+
+
+def save_checkpoint(
+    target: Path,
+    model: OffPolicyAlgorithm,
+    experiment_state: dict[str, Any],
+    replay_buffer: bool = True,
+    config: dict[str, Any] | None = None,
+) -> Path:
+    """Write a complete checkpoint of ``model`` to the folder ``target`` (see the module docstring for the order).
 
     :param experiment_state: picklable state of the experiment (evaluation history, ...), returned by
         :func:`load_checkpoint` as is
     :param replay_buffer: also save the replay buffer (needed to resume training, not to deploy the policy)
+    :param config: the run's resolved config, stored in ``meta.json``: what a resume is checked against
+    :raises RunFilesNotWritten: the files could not be written (a full disk); the previous checkpoint is intact
     """
-    tmp = target.with_name(target.name + ".tmp")
-    previous = target.with_name(target.name + ".prev")
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir(parents=True)
+    tmp = _sibling(target, ".tmp")
+    try:
+        shutil.rmtree(tmp, ignore_errors=True)
+        tmp.mkdir(parents=True)
+        files = _write_checkpoint_files(tmp, model, experiment_state, replay_buffer)
+        meta = {
+            "num_timesteps": model.num_timesteps,
+            "saved_at": time.time(),
+            "files": files,
+            "sha256": {name: _digest(tmp / name) for name in files},
+            "sizes": {name: (tmp / name).stat().st_size for name in files},
+            "config": config,
+        }
+        with open(tmp / META_FILE, "w") as file:
+            file.write(json.dumps(meta, indent=2))
+            file.flush()
+            os.fsync(file.fileno())
+        _fsync_dir(tmp)
+    except OSError as error:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise RunFilesNotWritten(
+            f"writing the checkpoint of step {model.num_timesteps} to {tmp} failed ({error.strerror or error})"
+        ) from error
+    _promote(target)
+    return target
 
+
+def _write_checkpoint_files(folder: Path, model: OffPolicyAlgorithm, experiment_state: dict[str, Any], replay_buffer: bool) -> list[str]:
     files = [MODEL_FILE, STATE_FILE]
-    model.save(tmp / MODEL_FILE)
+    model.save(folder / MODEL_FILE)
     buffer_arrays: list[str] = []
     if replay_buffer:
-        buffer_arrays = _save_filled_replay_buffer(model, tmp / REPLAY_BUFFER_FILE)
+        buffer_arrays = _save_filled_replay_buffer(model, folder / REPLAY_BUFFER_FILE)
         files.append(REPLAY_BUFFER_FILE)
     vec_normalize = model.get_vec_normalize_env()
     if vec_normalize is not None:
-        vec_normalize.save(str(tmp / VECNORMALIZE_FILE))
+        vec_normalize.save(str(folder / VECNORMALIZE_FILE))
         files.append(VECNORMALIZE_FILE)
     state = {
         "rng": _rng_state(model),
@@ -86,31 +131,149 @@ def save_checkpoint(target: Path, model: OffPolicyAlgorithm, experiment_state: d
         "replay_buffer_arrays": buffer_arrays,
         "experiment": experiment_state,
     }
-    with open(tmp / STATE_FILE, "wb") as file:
+    with open(folder / STATE_FILE, "wb") as file:
         pickle.dump(state, file)
-    meta = {"num_timesteps": model.num_timesteps, "saved_at": time.time(), "files": files}
-    (tmp / META_FILE).write_text(json.dumps(meta, indent=2))
-    for name in files + [META_FILE]:
-        _fsync(tmp / name)
+    for name in files:
+        _fsync(folder / name)
+    return files
 
-    shutil.rmtree(previous, ignore_errors=True)
+
+def _promote(target: Path) -> None:
+    """Move a complete ``<target>.tmp`` into place, keeping the checkpoint it replaces as ``<target>.prev``."""
+    tmp, previous = _sibling(target, ".tmp"), _sibling(target, ".prev")
     if target.exists():
+        shutil.rmtree(previous, ignore_errors=True)
         os.replace(target, previous)
     os.replace(tmp, target)
-    shutil.rmtree(previous, ignore_errors=True)
-    return target
+    _fsync_dir(target.parent)
+
+
+def _candidates(target: Path) -> list[Path]:
+    """The folders that may hold a complete checkpoint of ``target``, newest first: by step, then ``<target>``
+    before ``<target>.tmp`` before ``<target>.prev``. Only those with a readable ``meta.json``."""
+    found = []
+    for rank, candidate in enumerate((target, _sibling(target, ".tmp"), _sibling(target, ".prev"))):
+        meta = _read_meta(candidate)
+        if meta is not None:
+            found.append((-int(meta.get("num_timesteps", -1)), rank, candidate))
+    return [candidate for *_, candidate in sorted(found)]
 
 
 def find_checkpoint(target: Path) -> Path | None:
-    """The complete checkpoint at ``target``, or at ``target.prev`` when a save was cut between its two renames."""
-    for candidate in (target, target.with_name(target.name + ".prev")):
-        if (candidate / META_FILE).is_file():
-            return candidate
+    """The newest folder at ``target``, ``target.tmp`` or ``target.prev`` with a readable ``meta.json``; whether its
+    files are whole is checked when it is loaded (:func:`load_resumable`)."""
+    candidates = _candidates(target)
+    return candidates[0] if candidates else None
+
+
+def _read_meta(folder: Path) -> dict[str, Any] | None:
+    try:
+        meta = json.loads((folder / META_FILE).read_text())
+    except (OSError, ValueError):
+        return None
+    return meta if isinstance(meta, dict) else None
+
+
+def checkpoint_config(folder: Path) -> dict[str, Any] | None:
+    """The config a checkpoint was trained with (``meta.json``), or None for a checkpoint written before it was kept."""
+    meta = _read_meta(folder)
+    return None if meta is None else meta.get("config")
+
+
+def verify_checkpoint(folder: Path, need_buffer: bool = True) -> str | None:
+    """What is wrong with the checkpoint in ``folder``, or None when every file is there and matches ``meta.json``."""
+    meta = _read_meta(folder)
+    if meta is None:
+        return f"{META_FILE} is missing or unreadable"
+    files = list(meta.get("files", []))
+    if need_buffer and REPLAY_BUFFER_FILE not in files:
+        return "it has no replay buffer, so training cannot continue from it"
+    for name in files:
+        path = folder / name
+        if not path.is_file():
+            return f"{name} is missing"
+        size = meta.get("sizes", {}).get(name)
+        if size is not None and path.stat().st_size != size:
+            return f"{name} has {path.stat().st_size} bytes where {size} were written (cut short or damaged)"
+        digest = meta.get("sha256", {}).get(name)
+        if digest is not None and _digest(path) != digest:
+            return f"{name} does not match its SHA-256 in {META_FILE} (damaged)"
+        if digest is None and name == MODEL_FILE and not zipfile.is_zipfile(path):
+            return f"{name} is not a readable zip file"
     return None
 
 
+@dataclass
+class Resumed:
+    """What :func:`load_resumable` loaded: the model, the experiment state, the folder it came from, and the newer
+    checkpoints it passed over with what was wrong with each."""
+
+    model: OffPolicyAlgorithm
+    experiment_state: dict[str, Any]
+    path: Path
+    skipped: list[tuple[Path, str]] = field(default_factory=list)
+
+
+def load_resumable(run_dir: Path, load: Callable[[Path], tuple[OffPolicyAlgorithm, dict[str, Any]]]) -> Resumed:
+    """Load the newest whole ``last`` checkpoint of ``run_dir`` with ``load(folder)``, falling back to older ones.
+
+    The one loaded is then made ``checkpoints/last`` (a damaged newer one is renamed ``<name>.damaged``, never
+    deleted), so that the run's next save keeps it as ``last.prev``.
+    :raises ConfigError: no checkpoint could be loaded; the message lists each one and what was wrong
+    """
+    target = checkpoint_dir(run_dir, LAST)
+    skipped: list[tuple[Path, str]] = []
+    for candidate in _candidates(target):
+        problem = verify_checkpoint(candidate)
+        if problem is None:
+            try:
+                model, state = load(candidate)
+            except (OSError, EOFError, pickle.UnpicklingError, zipfile.BadZipFile, ValueError, KeyError) as error:
+                problem = f"loading it failed ({type(error).__name__}: {error})"
+        if problem is not None:
+            skipped.append((candidate, problem))
+            continue
+        for path, why in skipped:
+            log.warning("Checkpoint %s is not usable: %s", path, why)
+        if skipped:
+            log.warning("Resuming from the older checkpoint %s (step %d) instead", candidate, model.num_timesteps)
+        _settle(target, candidate, [path for path, _ in skipped])
+        return Resumed(model, state, candidate, skipped)
+    if not skipped:
+        raise ConfigError(
+            f"resume={run_dir}: this folder has no complete checkpoint ({target}/{META_FILE} is missing). A run writes "
+            "one every checkpoint.freq steps, at the end and on SIGINT/SIGTERM; a run killed before its first "
+            "checkpoint cannot be resumed: start it again in a new run_dir."
+        )
+    problems = "; ".join(f"{path.name}: {why}" for path, why in skipped)
+    raise ConfigError(
+        f"resume={run_dir}: no checkpoint of this run could be loaded ({problems}). The files are left as they are; "
+        "a run cannot continue without a whole checkpoint, start it again in a new run_dir."
+    )
+
+
+def _settle(target: Path, loaded: Path, damaged: list[Path]) -> None:
+    """Make the checkpoint ``loaded`` the ``target`` folder: finish a save cut between its renames, and move damaged
+    newer checkpoints aside as ``<name>.damaged``."""
+    for path in damaged:
+        if path != loaded:
+            aside = _sibling(path, DAMAGED)
+            shutil.rmtree(aside, ignore_errors=True)
+            os.replace(path, aside)
+    if loaded == _sibling(target, ".tmp"):
+        _promote(target)
+    elif loaded != target:
+        if target.exists():  # newer but without a readable meta.json: a partial leftover, kept aside
+            aside = _sibling(target, DAMAGED)
+            shutil.rmtree(aside, ignore_errors=True)
+            os.replace(target, aside)
+        os.replace(loaded, target)
+        _fsync_dir(target.parent)
+
+
 def resume_checkpoint(run_dir: Path) -> Path:
-    """The ``last`` checkpoint of ``run_dir``; a :class:`ConfigError` saying what is missing otherwise."""
+    """The newest ``last`` checkpoint of ``run_dir`` (whole or not: :func:`load_resumable` checks); a
+    :class:`ConfigError` saying what is missing otherwise."""
     if not run_dir.is_dir():
         raise ConfigError(
             f"resume={run_dir}: no such folder. Pass the run folder of an earlier run, "
@@ -121,10 +284,8 @@ def resume_checkpoint(run_dir: Path) -> Path:
         raise ConfigError(
             f"resume={run_dir}: this folder has no complete checkpoint ({checkpoint_dir(run_dir, LAST)}/{META_FILE} is "
             "missing). A run writes one every checkpoint.freq steps, at the end and on SIGINT/SIGTERM; a run killed "
-            "before its first checkpoint cannot be resumed, start it again instead."
+            "before its first checkpoint cannot be resumed: start it again in a new run_dir."
         )
-    if not (found / REPLAY_BUFFER_FILE).is_file():
-        raise ConfigError(f"resume={run_dir}: the checkpoint {found} has no replay buffer, so training cannot continue.")
     return found
 
 
@@ -209,6 +370,26 @@ def _regrow_replay_buffer(buffer: ReplayBuffer, names: list[str]) -> None:
 def _fsync(path: Path) -> None:
     with open(path, "rb") as file:
         os.fsync(file.fileno())
+
+
+def _fsync_dir(folder: Path) -> None:
+    """Flush a folder's entries (creations, renames) to disk."""
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    except OSError as error:  # some file systems cannot sync a directory; the renames are still atomic there
+        if error.errno not in (errno.EINVAL, errno.ENOTSUP):
+            raise
+    finally:
+        os.close(fd)
+
+
+def _digest(path: Path) -> str:
+    sha = hashlib.sha256()
+    with open(path, "rb") as file:
+        while chunk := file.read(1 << 20):
+            sha.update(chunk)
+    return sha.hexdigest()
 
 
 # Random number generators -------------------------------------------------------------------------------------------

@@ -19,7 +19,9 @@ from omegaconf.errors import OmegaConfBaseException
 
 from sb3_td3x.common.redaction import redact, redact_log_records
 from sb3_td3x.experiment.checkpoints import resume_checkpoint, seed_run_dir
-from sb3_td3x.experiment.errors import ConfigError, TrainingDiverged, TrainingInterrupted
+from sb3_td3x.experiment.errors import ConfigError, RunFilesNotWritten, TrainingDiverged, TrainingInterrupted
+from sb3_td3x.experiment.lock import RunFolderLock
+from sb3_td3x.experiment.resume import saved_config
 from sb3_td3x.experiment.runner import CONFIG_FILE, run_experiment
 from sb3_td3x.experiment.schemas import ExperimentConfig
 
@@ -28,15 +30,19 @@ CONFIG_GROUPS = ("algo", "env", "eval", "logger", "video", "debug")
 
 EXIT_CONFIG_ERROR = 2
 EXIT_DIVERGED = 3
+EXIT_NOT_WRITTEN = 4  # a full disk, a quota: the run's files could not be written
 
 
 def check_command_line(args: list[str], conf_dir: Path) -> None:
-    """Exit with a one-paragraph message when a group choice (``env=antt``) or ``resume=`` on the command line is wrong.
+    """Exit with a one-paragraph message (status 2) when the command line cannot run: a wrong group choice
+    (``env=antt``), a key the config does not have (``algo.taau=0.1``), a ``resume=`` that cannot be resumed or whose
+    folder another process holds, a ``run_dir=`` that is a file or already holds a run.
 
-    Runs before ``@hydra.main``: Hydra would report an unknown group choice as a page listing its search path, and
-    would create the folder of a ``resume=`` that does not exist before the task could refuse it.
+    Runs before ``@hydra.main``: Hydra would report these as a page of its own (with exit status 1), and would
+    write its records into the run folder before the task could refuse it.
     """
     try:
+        plain = []  # the overrides to compose, a sweep's first value standing for the sweep
         for arg in args:
             if re.match(r"^[+~]?[A-Za-z_][\w.]*=", arg) is None:
                 continue  # a flag such as -m, or something Hydra will explain itself
@@ -53,8 +59,39 @@ def check_command_line(args: list[str], conf_dir: Path) -> None:
                 for value in values:
                     if value is not None:
                         _check_resume_dir(Path(str(value)))
+            elif key == "run_dir" and not override.is_sweep_override() and values[0] is not None:
+                _check_new_run_dir(Path(str(values[0])))
+            if not key.startswith("hydra"):
+                plain.append(arg if not override.is_sweep_override() else f"{arg.split('=', 1)[0]}={values[0]}")
+        _check_composes(plain, conf_dir)
     except ConfigError as error:
-        _exit(f"Error: {error}", EXIT_CONFIG_ERROR)
+        _exit(f"Error: {_one_paragraph(error)}", EXIT_CONFIG_ERROR)
+
+
+def _check_composes(overrides: list[str], conf_dir: Path) -> None:
+    """Compose the config as Hydra will (with a sweep's first values): a key it does not have, a value of the
+    wrong type, become a :class:`ConfigError` naming the override."""
+    from hydra.errors import HydraException
+
+    from sb3_td3x.experiment.schemas import compose_config
+
+    if any(arg.split("=", 1)[0].lstrip("+~") == "resume" for arg in overrides):
+        return  # a resume's overrides apply to the saved config (config_for_resume checks them)
+    try:
+        compose_config(overrides, conf_dir)
+    except (HydraException, OmegaConfBaseException) as error:
+        causes = [error] + ([error.__cause__] if error.__cause__ is not None else [])
+        message = " ".join(" ".join(str(cause).split()).rstrip(".") + "." for cause in causes)
+        raise ConfigError(f"{message} (python run.py --cfg job prints the whole config.)") from None
+
+
+def _check_new_run_dir(run_dir: Path) -> None:
+    from sb3_td3x.experiment.runner import refuse_existing_run
+
+    if run_dir.exists() and not run_dir.is_dir():
+        raise ConfigError(f"run_dir={run_dir} is a file, not a folder. Pass a folder for the run's records.")
+    RunFolderLock.check_free(run_dir)
+    refuse_existing_run(run_dir)
 
 
 def _check_group_choice(conf_dir: Path, group: str, choice: object) -> None:
@@ -69,12 +106,15 @@ def _check_group_choice(conf_dir: Path, group: str, choice: object) -> None:
 
 
 def _check_resume_dir(run_dir: Path) -> None:
-    if run_dir.is_dir() and not (run_dir / CONFIG_FILE).is_file():
+    if run_dir.exists() and not run_dir.is_dir():
+        raise ConfigError(f"resume={run_dir} is a file. Pass the folder of an earlier run (it holds checkpoints/).")
+    if run_dir.is_dir() and not (run_dir / CONFIG_FILE).is_file() and not (run_dir / "checkpoints").is_dir():
         raise ConfigError(
             f"resume={run_dir}: {run_dir / CONFIG_FILE} does not exist. Pass the folder of an earlier run "
             "(runs/<env>/<algo>/seed<N>/<date>), which holds config.yaml and checkpoints/."
         )
     resume_checkpoint(run_dir)
+    RunFolderLock.check_free(run_dir)
 
 
 def available_cores() -> int:
@@ -111,6 +151,8 @@ def main(cfg: DictConfig) -> float:
             cfg = config_for_resume(cfg, list(hydra_cfg.overrides.task))
         else:
             if cfg.seeds is not None:
+                if len(cfg.seeds) == 0:
+                    raise ConfigError("seeds=[] lists no seed; list the seeds to train together, e.g. seeds=[0,1,2]")
                 overridden = {o.split("=", 1)[0].lstrip("+~") for o in hydra_cfg.overrides.task}
                 if "seed" not in overridden and cfg.seed not in cfg.seeds:
                     cfg.seed = cfg.seeds[0]
@@ -132,6 +174,8 @@ def main(cfg: DictConfig) -> float:
         _exit(f"Error: {error}", EXIT_DIVERGED)
     except TrainingInterrupted as error:
         _exit(str(error), error.exit_code)
+    except RunFilesNotWritten as error:
+        _exit(f"Error: {_one_paragraph(error)}", EXIT_NOT_WRITTEN)
 
 
 def seed_folders(output_dir: Path, seed: int, seeds: list[int]) -> list[str]:
@@ -190,24 +234,31 @@ def redact_hydra_records(hydra_cfg: DictConfig) -> None:
 
 
 def config_for_resume(cfg: DictConfig, overrides: list[str]) -> DictConfig:
-    """The config saved in the run folder ``cfg.resume``, with the command line's plain overrides applied.
+    """The config the run ``cfg.resume`` trained with (kept in its checkpoint), with the command line's overrides.
 
-    ``python run.py resume=DIR total_timesteps=2000000`` continues DIR to 2M steps with everything else as saved;
-    changing a config group (``env=...``) is refused, since the checkpoint belongs to the saved choices.
+    ``python run.py resume=DIR total_timesteps=2000000`` continues DIR to 2M steps with everything else as saved.
+    The run then checks every change against the checkpoint (:mod:`sb3_td3x.experiment.resume`): a resume may change
+    the length, the evaluation and checkpoint frequencies, logging and the device, nothing that enters the
+    computation. A config group may change where it is one of those (``logger=wandb``, ``video=final``).
     """
     run_dir = Path(cfg.resume)
     _check_resume_dir(run_dir)
-    saved_file = run_dir / CONFIG_FILE
-    resumed = OmegaConf.merge(OmegaConf.structured(ExperimentConfig), OmegaConf.load(saved_file))
+    saved = saved_config(run_dir, resume_checkpoint(run_dir), CONFIG_FILE)
+    resumed = OmegaConf.merge(OmegaConf.structured(ExperimentConfig), OmegaConf.create(saved))
     for override in OverridesParser.create().parse_overrides(overrides):
         key = override.key_or_group
         if key == "resume" or key.startswith("hydra"):
             continue
-        if key.split(".")[0] in CONFIG_GROUPS and "." not in key:
-            raise ConfigError(
-                f"resume={run_dir} continues the run with its saved config, so '{override.input_line}' cannot change the "
-                f"config group '{key}'. Drop it, or start a new run without resume=."
-            )
+        if key in CONFIG_GROUPS:
+            if key not in ("logger", "video"):
+                raise ConfigError(
+                    f"resume={run_dir} continues the run with its saved config, so '{override.input_line}' cannot change "
+                    f"the config group '{key}'. Drop it, or start a new run without resume=."
+                )
+            from sb3_td3x.experiment.schemas import compose_config
+
+            resumed[key] = compose_config([override.input_line])[key]
+            continue
         OmegaConf.update(resumed, key, override.value(), merge=False)
     resumed.resume = str(run_dir)
     resumed.run_dir = str(run_dir)

@@ -10,6 +10,8 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecNormalize
 
+from sb3_td3x.experiment.errors import ConfigError
+
 
 def gym_make_kwargs(env_cfg: DictConfig) -> dict[str, Any]:
     """Keyword arguments of ``gymnasium.make`` for this env config (besides the id)."""
@@ -25,7 +27,14 @@ def make_train_env(env_cfg: DictConfig, n_envs: int, seed: int) -> VecEnv:
     Wrapped in ``VecNormalize`` when ``env.normalize_obs`` or ``env.normalize_reward`` is set.
     DummyVecEnv rather than subprocesses: TD3 is bound by its gradient steps, not by stepping the env.
     """
-    venv = make_vec_env(env_cfg.id, n_envs=n_envs, seed=seed, env_kwargs=gym_make_kwargs(env_cfg), vec_env_cls=DummyVecEnv)
+    kwargs = gym_make_kwargs(env_cfg)
+    try:
+        venv = make_vec_env(env_cfg.id, n_envs=n_envs, seed=seed, env_kwargs=kwargs, vec_env_cls=DummyVecEnv)
+    except TypeError as error:  # an argument the environment does not take (env.kwargs)
+        raise ConfigError(
+            f"gymnasium.make({env_cfg.id!r}, **{kwargs}) failed: {error}. Check env.kwargs against the arguments of "
+            f"{env_cfg.id} (gymnasium's documentation of the environment lists them)."
+        ) from None
     if env_cfg.normalize_obs or env_cfg.normalize_reward:
         venv = VecNormalize(venv, norm_obs=env_cfg.normalize_obs, norm_reward=env_cfg.normalize_reward)
     return venv

@@ -1,7 +1,8 @@
 """Errors the experiment framework raises on purpose.
 
-``run.py`` turns :class:`ConfigError` and :class:`TrainingInterrupted` into a one-paragraph message and a
-non-zero exit status; everything else is a bug and keeps its traceback.
+``run.py`` turns each of them into a one-paragraph message and a non-zero exit status (2 for a bad config, 3 for a
+diverged run, 4 for files that could not be written, 128 + the signal for a stop); everything else is a bug and
+keeps its traceback.
 """
 
 
@@ -26,9 +27,16 @@ class TrainingDiverged(RuntimeError):
         self.num_timesteps = num_timesteps
         super().__init__(
             f"Training diverged: {what} became {value} at step {num_timesteps}. "
-            "Lower the learning rates (algo.learning_rate, algo.critic_learning_rate), check the environment's "
-            "rewards for NaN/inf, or resume from the last checkpoint written before that step."
+            "Start a new run with lower learning rates (algo.learning_rate, algo.critic_learning_rate), or check the "
+            "environment's rewards for NaN/inf. Resuming would repeat the same steps: a resumed run continues exactly."
         )
+
+
+class RunFilesNotWritten(RuntimeError):
+    """A file of the run (a checkpoint, the evaluations) could not be written: a full disk, a quota, permissions.
+
+    The message says what failed; the runner adds which checkpoint is intact and the command that continues.
+    """
 
 
 class TrainingInterrupted(Exception):

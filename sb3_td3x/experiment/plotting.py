@@ -53,8 +53,13 @@ def plot_learning_curve(history: list[dict[str, float]], path: Path, title: str)
         ax = value_ax
     steps_axis(ax)
     fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
+    tmp = path.with_name(path.name + ".tmp.png")
+    try:  # written whole or not at all: a full disk leaves the previous curve, not an empty file
+        fig.savefig(tmp)
+        tmp.replace(path)
+    finally:
+        plt.close(fig)
+        tmp.unlink(missing_ok=True)
     return path
 
 

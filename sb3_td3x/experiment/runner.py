@@ -7,6 +7,7 @@ sets it to Hydra's output folder), or ``cfg.resume`` when continuing a run.
 
 from __future__ import annotations
 
+import errno
 import json
 import logging
 import os
@@ -25,17 +26,21 @@ from omegaconf import DictConfig, OmegaConf
 from sb3_td3x.common.redaction import redact
 from sb3_td3x.experiment.algos import algorithm_class, build_algorithm
 from sb3_td3x.experiment.callbacks import Checkpointer, DivergenceCheck, PeriodicEvaluation, ProgressBar, StopOnSignal
+from sb3_td3x.experiment.callbacks import EVALUATIONS_CSV, write_atomically
 from sb3_td3x.experiment.checkpoints import (
     LAST,
+    META_FILE,
     checkpoint_dir,
     find_checkpoint,
     load_checkpoint,
-    resume_checkpoint,
+    load_resumable,
     seed_run_dir,
 )
 from sb3_td3x.experiment.envs import make_eval_env, make_train_env
-from sb3_td3x.experiment.errors import ConfigError, TrainingDiverged, TrainingInterrupted
+from sb3_td3x.experiment.errors import ConfigError, RunFilesNotWritten, TrainingDiverged, TrainingInterrupted
+from sb3_td3x.experiment.lock import RunFolderLock
 from sb3_td3x.experiment.loggers import build_logger, start_wandb
+from sb3_td3x.experiment.resume import check_resume, saved_config
 from sb3_td3x.experiment.plotting import LEARNING_CURVE_PNG, plot_learning_curve, record_video
 from sb3_td3x.experiment.schemas import check_config, public_config
 from sb3_td3x.experiment.statistics import STATISTICS, seed_statistic
@@ -88,8 +93,34 @@ def run_experiment(
         raise ConfigError(f"seeds_aggregate={seeds_aggregate!r} must be one of {', '.join(STATISTICS)}")
     if cfg.torch_threads is not None:
         torch.set_num_threads(cfg.torch_threads)
-    if cfg.seeds is not None:
-        return _run_seeds(cfg, report, seeds_aggregate, report_seeds)
+    try:
+        if cfg.seeds is not None:
+            return _run_seeds(cfg, report, seeds_aggregate, report_seeds)
+        return _run_one(cfg, report)
+    except RunFilesNotWritten as error:
+        raise RunFilesNotWritten(_not_written(cfg, str(error))) from error
+    except OSError as error:
+        if error.errno not in _DISK_ERRORS:
+            raise
+        raise RunFilesNotWritten(_not_written(cfg, f"writing {error.filename or 'a file'} failed ({error.strerror})")) from error
+
+
+# Errors of a file system that cannot take more: the run stops with a message instead of a traceback.
+_DISK_ERRORS = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS)
+
+
+def _not_written(cfg: DictConfig, what: str) -> str:
+    run_dir = seed_run_dirs(cfg)[0] if cfg.seeds is not None else Path(cfg.run_dir)
+    step = _checkpoint_step(find_checkpoint(checkpoint_dir(run_dir, LAST)))
+    if step is None:
+        return f"The run in {run_dir} stopped: {what}. It had written no checkpoint yet; free some space and start it again."
+    return (
+        f"The run in {run_dir} stopped: {what}. Its checkpoint of step {step} is whole, so nothing trained before it is "
+        f"lost: free some space, then continue with: python run.py resume={run_dir}"
+    )
+
+
+def _run_one(cfg: DictConfig, report: Callable[[int, float], None] | None) -> float:
     run = _prepare(cfg)
     try:
         if report is not None:
@@ -115,6 +146,7 @@ class _Run:
     run_dir: Path
     started: float
     closers: list[Callable[[], object]] = field(default_factory=list)
+    lock: RunFolderLock | None = None
     resume_from: Path | None = None
     model: Any = None
     evaluation: PeriodicEvaluation | None = None
@@ -126,71 +158,33 @@ class _Run:
     succeeded: bool = False
 
 
-def _prepare(cfg: DictConfig) -> _Run:
-    """Everything a run does before ``model.learn``: folder, config file, envs, model (built or loaded), loggers,
-    callbacks. On an error, what was opened is closed."""
+def _prepare(cfg: DictConfig, restart: bool = False) -> _Run:
+    """Everything a run does before ``model.learn``: lock the folder, build or load the model, then (once the
+    checkpoint has loaded and the config is accepted) the records, loggers and callbacks. On an error, what was
+    opened is closed and nothing of the run's records has been written.
+
+    :param restart: start afresh in a folder that holds records but no checkpoint (a seed of a resumed batch that
+        was stopped before its first checkpoint); otherwise a new run refuses a folder that holds a run
+    """
     run = _Run(cfg, Path(cfg.run_dir), time.time())
-    run.resume_from = resume_checkpoint(run.run_dir) if cfg.resume is not None else None
-    run.run_dir.mkdir(parents=True, exist_ok=True)
-    config = public_config(cfg)
-    (run.run_dir / CONFIG_FILE).write_text(OmegaConf.to_yaml(OmegaConf.create(config)))
-    train_env = make_train_env(cfg.env, cfg.n_envs, cfg.seed)
-    eval_env = make_eval_env(cfg.env)
-    run.closers += [train_env.close, eval_env.close]
+    run.lock = RunFolderLock.acquire(run.run_dir)
     try:
-        if run.resume_from is None:
-            model = build_algorithm(cfg, train_env)
-            experiment_state = None
-        else:
-            model, experiment_state = load_checkpoint(run.resume_from, algorithm_class(cfg.algo), train_env, cfg.device)
-            log.info("Resuming %s at step %d from %s", run.run_dir, model.num_timesteps, run.resume_from)
-        run.model = model
-        if cfg.algo.learning_starts >= cfg.total_timesteps:
-            log.warning(
-                "algo.learning_starts=%d >= total_timesteps=%d: the whole run takes uniformly random actions and never "
-                "trains. Lower algo.learning_starts or raise total_timesteps.",
-                cfg.algo.learning_starts,
-                cfg.total_timesteps,
-            )
-
+        if cfg.resume is None and not restart:
+            refuse_existing_run(run.run_dir)
+        config = public_config(cfg)
+        train_env = make_train_env(cfg.env, cfg.n_envs, cfg.seed)
+        run.closers.append(train_env.close)
+        eval_env = make_eval_env(cfg.env)
+        run.closers.append(eval_env.close)
+        experiment_state, session = _model(run, config, train_env)
+        model = run.model
+        write_atomically(run.run_dir / CONFIG_FILE, OmegaConf.to_yaml(OmegaConf.create(config)))
         with open(run.run_dir / PROVENANCE_FILE, "a") as file:  # one line per session: a run may span several
-            record = {"started": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "at_step": int(model.num_timesteps), **provenance()}
-            file.write(json.dumps(redact(record)) + "\n")
-
+            record = {"started": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "at_step": int(model.num_timesteps), **session}
+            file.write(json.dumps(redact({**record, **provenance()})) + "\n")
         run.run_name = f"{cfg.env.name}_{cfg.algo.name}_seed{cfg.seed}"
-        wandb_run = start_wandb(cfg.logger.wandb, run.run_dir, run.run_name, config) if cfg.logger.wandb is not None else None
-        if wandb_run is not None:
-            run.closers.append(lambda: wandb_run.finish(exit_code=0 if run.succeeded else 1))
-        logger = build_logger(cfg.logger, run.run_dir, wandb_run)
-        run.closers.insert(0, logger.close)
-        model.set_logger(logger)
-
-        run.progress = ProgressBar(cfg.total_timesteps, run.run_name) if cfg.progress_bar else None
-        if run.progress is not None:
-            run.closers.insert(0, run.progress.close)
-        evaluation = run.evaluation = PeriodicEvaluation(
-            eval_env,
-            run.run_dir,
-            cfg.eval.freq,
-            cfg.eval.n_episodes,
-            cfg.seed + cfg.eval.seed_offset,
-            cfg.eval.deterministic,
-            value_bias=cfg.eval.value_bias,
-            value_horizon_tolerance=cfg.eval.value_horizon_tolerance,
-        )
-        checkpointer = run.checkpointer = Checkpointer(
-            run.run_dir,
-            cfg.checkpoint.freq,
-            experiment_state=lambda: {"evaluation": evaluation.state_dict()},
-            save_best=cfg.checkpoint.save_best,
-            best_replay_buffer=cfg.checkpoint.best_replay_buffer,
-        )
-        if experiment_state is not None:
-            evaluation.load_state_dict(experiment_state["evaluation"])
-            checkpointer.best_mean_return = evaluation.best_mean_return
-        evaluation.listeners.append(checkpointer.on_evaluation)
-        if run.progress is not None:
-            evaluation.listeners.append(run.progress.on_evaluation)
+        _loggers(run, config)
+        _callbacks(run, eval_env, config, experiment_state)
         log.info(
             "Training %s (%s) on %s for %d steps, seed %d, device %s; run folder: %s",
             type(model).__name__,
@@ -202,11 +196,139 @@ def _prepare(cfg: DictConfig) -> _Run:
             run.run_dir,
         )
         run.remaining = cfg.total_timesteps - model.num_timesteps
-        run.callbacks = [DivergenceCheck(), evaluation, checkpointer] + ([run.progress] if run.progress is not None else [])
         return run
     except BaseException:
         _close(run)
         raise
+
+
+def _model(run: _Run, config: dict[str, Any], train_env: Any) -> tuple[dict[str, Any] | None, dict[str, Any]]:
+    """Build the model, or load it from the run's newest whole checkpoint and check the config against the one it
+    trained with. Returns the experiment state to restore and what this session's provenance line adds."""
+    cfg = run.cfg
+    if cfg.resume is None:
+        check_buffer_fits(cfg, train_env)
+        run.model = build_algorithm(cfg, train_env)
+        _warn_never_trains(cfg)
+        return None, {}
+    cls = algorithm_class(cfg.algo)
+    resumed = load_resumable(run.run_dir, lambda path: load_checkpoint(path, cls, train_env, cfg.device))
+    run.model, run.resume_from = resumed.model, checkpoint_dir(run.run_dir, LAST)
+    changes = check_resume(saved_config(run.run_dir, run.resume_from, CONFIG_FILE), config, run.run_dir)
+    log.info("Resuming %s at step %d from %s", run.run_dir, run.model.num_timesteps, resumed.path)
+    for key, change in changes.items():
+        log.info("Changed on resume, from step %d: %s = %r (was %r)", run.model.num_timesteps, key, change["to"], change["from"])
+    _warn_never_trains(cfg)
+    session: dict[str, Any] = {"resumed_from": str(resumed.path.relative_to(run.run_dir))}
+    if changes:
+        session["changes"] = changes
+    if resumed.skipped:
+        session["skipped_checkpoints"] = {str(path.relative_to(run.run_dir)): why for path, why in resumed.skipped}
+    return resumed.experiment_state, session
+
+
+def _warn_never_trains(cfg: DictConfig) -> None:
+    if cfg.algo.learning_starts >= cfg.total_timesteps:
+        log.warning(
+            "algo.learning_starts=%d >= total_timesteps=%d: the whole run takes uniformly random actions and never "
+            "trains. Lower algo.learning_starts or raise total_timesteps.",
+            cfg.algo.learning_starts,
+            cfg.total_timesteps,
+        )
+
+
+def _loggers(run: _Run, config: dict[str, Any]) -> None:
+    cfg = run.cfg
+    wandb_run = start_wandb(cfg.logger.wandb, run.run_dir, run.run_name, config) if cfg.logger.wandb is not None else None
+    if wandb_run is not None:
+        run.closers.append(lambda: wandb_run.finish(exit_code=0 if run.succeeded else 1))
+    logger = build_logger(cfg.logger, run.run_dir, wandb_run)
+    run.closers.insert(0, logger.close)
+    run.model.set_logger(logger)
+
+
+def _callbacks(run: _Run, eval_env: Any, config: dict[str, Any], experiment_state: dict[str, Any] | None) -> None:
+    cfg = run.cfg
+    run.progress = ProgressBar(cfg.total_timesteps, run.run_name) if cfg.progress_bar else None
+    if run.progress is not None:
+        run.closers.insert(0, run.progress.close)
+    evaluation = run.evaluation = PeriodicEvaluation(
+        eval_env,
+        run.run_dir,
+        cfg.eval.freq,
+        cfg.eval.n_episodes,
+        cfg.seed + cfg.eval.seed_offset,
+        cfg.eval.deterministic,
+        value_bias=cfg.eval.value_bias,
+        value_horizon_tolerance=cfg.eval.value_horizon_tolerance,
+    )
+    checkpointer = run.checkpointer = Checkpointer(
+        run.run_dir,
+        cfg.checkpoint.freq,
+        experiment_state=lambda: {"evaluation": evaluation.state_dict()},
+        save_best=cfg.checkpoint.save_best,
+        best_replay_buffer=cfg.checkpoint.best_replay_buffer,
+        config=config,
+    )
+    if experiment_state is not None:
+        evaluation.load_state_dict(experiment_state["evaluation"])
+        checkpointer.best_mean_return = evaluation.best_mean_return
+    evaluation.listeners.append(checkpointer.on_evaluation)
+    if run.progress is not None:
+        evaluation.listeners.append(run.progress.on_evaluation)
+    run.callbacks = [DivergenceCheck(), evaluation, checkpointer] + ([run.progress] if run.progress is not None else [])
+
+
+def refuse_existing_run(run_dir: Path) -> None:
+    """A :class:`ConfigError` when ``run_dir`` already holds a run's records: a new run never reuses a folder."""
+    if not run_dir.is_dir():
+        return
+    checkpoints = run_dir / "checkpoints"
+    held = [name for name in (CONFIG_FILE, EVALUATIONS_CSV, SUMMARY_FILE) if (run_dir / name).exists()]
+    if checkpoints.is_dir() and any(checkpoints.iterdir()):
+        found = find_checkpoint(checkpoint_dir(run_dir, LAST))
+        step = _checkpoint_step(found)
+        held.append(f"a checkpoint at step {step}" if step is not None else "checkpoints/")
+    if held:
+        raise ConfigError(
+            f"run_dir={run_dir} already holds a run ({', '.join(held)}). Continue that run with: python run.py "
+            f"resume={run_dir}, or start this one in a new folder (a new run_dir, or none: the default names a new "
+            "folder for each launch)."
+        )
+
+
+def _checkpoint_step(folder: Path | None) -> int | None:
+    if folder is None:
+        return None
+    try:
+        return int(json.loads((folder / META_FILE).read_text())["num_timesteps"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+def check_buffer_fits(cfg: DictConfig, env: Any) -> None:
+    """A :class:`ConfigError` when the replay buffer alone would need more memory than the machine has."""
+    import numpy as np
+    from gymnasium import spaces
+
+    def nbytes(space: Any) -> int:
+        if isinstance(space, spaces.Dict):
+            return sum(nbytes(sub) for sub in space.spaces.values())
+        return int(np.prod(space.shape or (1,))) * np.dtype(space.dtype or np.float32).itemsize
+
+    per_transition = nbytes(env.observation_space) * (1 if cfg.algo.optimize_memory_usage else 2)
+    per_transition += nbytes(env.action_space) + 3 * 4  # rewards, dones, timeouts
+    needed = int(cfg.algo.buffer_size) * per_transition
+    try:
+        memory = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError, AttributeError):  # not a POSIX system: nothing to compare with
+        return
+    if needed > memory:
+        raise ConfigError(
+            f"algo.buffer_size={cfg.algo.buffer_size} needs about {needed / 2**30:.1f} GiB for the replay buffer "
+            f"({per_transition} bytes per transition of {cfg.env.id}), more than this machine's {memory / 2**30:.1f} GiB "
+            "of memory. Lower algo.buffer_size (the paper's is 1000000)."
+        )
 
 
 def _finish(run: _Run) -> float:
@@ -261,11 +383,17 @@ def _close(run: _Run) -> None:
             log.warning("Closing %s failed: %s", close, error)
     run.closers = []
     if run.evaluation is not None and run.evaluation.history:
-        plot_learning_curve(
-            run.evaluation.history,
-            run.run_dir / LEARNING_CURVE_PNG,
-            f"{run.cfg.algo.name} on {run.cfg.env.id}, seed {run.cfg.seed}",
-        )
+        try:
+            plot_learning_curve(
+                run.evaluation.history,
+                run.run_dir / LEARNING_CURVE_PNG,
+                f"{run.cfg.algo.name} on {run.cfg.env.id}, seed {run.cfg.seed}",
+            )
+        except OSError as error:  # a full disk: the curve is in evaluations.csv, and the error that ended the run goes on
+            log.warning("The learning curve could not be drawn: %s", error)
+    if run.lock is not None:
+        run.lock.release()
+        run.lock = None
 
 
 # Many seeds in one process ------------------------------------------------------------------------------------------
@@ -374,7 +502,7 @@ def _run_seeds(
             if (handler := _seed_log_file(run_dir, index)) is not None:
                 handlers.append(handler)
             with acting_as(index):
-                runs.append(_prepare(seed_cfg))
+                runs.append(_prepare(seed_cfg, restart=cfg.resume is not None))
                 # Where this seed's lone run stands when it calls learn(): its random stream from now on.
                 states.append(GlobalRandomState.capture(runs[-1].model.device))
         caller.restore()

@@ -294,6 +294,7 @@ def check_config(cfg: DictConfig) -> None:
         f"eval.value_horizon_tolerance={cfg.eval.value_horizon_tolerance} must be in [0, 1]",
     )
     need(cfg.checkpoint.freq >= 1, f"checkpoint.freq={cfg.checkpoint.freq} must be >= 1 environment step")
+    need(cfg.logger.log_interval >= 1, f"logger.log_interval={cfg.logger.log_interval} must be >= 1 episode")
     if cfg.logger.wandb is not None:
         mode = cfg.logger.wandb.mode
         need(

@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from sb3_td3x.experiment.checkpoints import META_FILE, find_checkpoint, save_checkpoint
+from sb3_td3x.experiment.checkpoints import META_FILE, find_checkpoint, save_checkpoint, verify_checkpoint
 from sb3_td3x.experiment.cli import config_for_resume
 from sb3_td3x.experiment.errors import ConfigError
 from sb3_td3x.experiment.schemas import compose_config
@@ -105,13 +105,15 @@ def test_a_checkpoint_cut_between_its_renames_is_still_found(tmp_path):
     last = tmp_path / "last"
     assert find_checkpoint(last) is None
     (tmp_path / "last.prev").mkdir()
-    (tmp_path / "last.prev" / META_FILE).write_text("{}")
+    (tmp_path / "last.prev" / META_FILE).write_text('{"num_timesteps": 100}')
     assert find_checkpoint(last) == tmp_path / "last.prev"  # the old one moved aside, the new one not yet in place
-    (tmp_path / "last.tmp").mkdir()  # a save that died while writing: never used
+    (tmp_path / "last.tmp").mkdir()  # a save that died while writing (no meta.json yet): never used
     assert find_checkpoint(last) == tmp_path / "last.prev"
+    (tmp_path / "last.tmp" / META_FILE).write_text('{"num_timesteps": 200}')  # written whole, not yet renamed
+    assert find_checkpoint(last) == tmp_path / "last.tmp"
 
 
-def test_save_checkpoint_replaces_the_previous_one_whole(tmp_path):
+def test_save_checkpoint_keeps_the_one_before(tmp_path):
     from sb3_td3x import TD3X
     from sb3_td3x.experiment.envs import make_train_env
 
@@ -123,9 +125,13 @@ def test_save_checkpoint_replaces_the_previous_one_whole(tmp_path):
     save_checkpoint(tmp_path / "last", model, {"n": 1})
     model.learn(20, reset_num_timesteps=False)
     save_checkpoint(tmp_path / "last", model, {"n": 2})
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["last"]
-    assert json.loads((tmp_path / "last" / META_FILE).read_text())["num_timesteps"] == 40
+    model.learn(20, reset_num_timesteps=False)
+    save_checkpoint(tmp_path / "last", model, {"n": 3})
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["last", "last.prev"]
+    assert json.loads((tmp_path / "last" / META_FILE).read_text())["num_timesteps"] == 60
+    assert json.loads((tmp_path / "last.prev" / META_FILE).read_text())["num_timesteps"] == 40
     assert os.path.getsize(tmp_path / "last" / "replay_buffer.pkl") > 0
+    assert verify_checkpoint(tmp_path / "last") is None and verify_checkpoint(tmp_path / "last.prev") is None
 
 
 @pytest.mark.parametrize("optimize_memory_usage", [False, True])
