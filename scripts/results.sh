@@ -36,8 +36,16 @@ PY
     echo "done already: $dir"
     return 0
   fi
+  # A run that wrote records but no checkpoint (killed in its first steps) cannot be resumed, and run.py refuses to
+  # start a new run over its records: they are moved aside, never deleted.
+  if ! compgen -G "$dir/checkpoints/last*/meta.json" >/dev/null && [[ -f $dir/config.yaml || -f $dir/evaluations.csv ]]; then
+    local aside
+    aside="$dir.unfinished-$(date +%Y%m%d-%H%M%S)"
+    mv "$dir" "$aside" && echo "no checkpoint in $dir: its records moved to $aside, starting again"
+  fi
   mkdir -p "$dir"
-  if [[ -d $dir/checkpoints/last ]]; then
+  # Any checkpoint counts (last, last.prev, a whole last.tmp): run.py takes the newest whole one.
+  if compgen -G "$dir/checkpoints/last*/meta.json" >/dev/null; then
     echo "resuming: $dir"
     "$python" run.py resume="$dir" total_timesteps="$steps" progress_bar=false >>"$dir/stdout.log" 2>&1
   else

@@ -21,9 +21,9 @@ from sb3_td3x.common.redaction import redact, redact_log_records
 from sb3_td3x.experiment.checkpoints import resume_checkpoint, seed_run_dir
 from sb3_td3x.experiment.errors import ConfigError, RunFilesNotWritten, TrainingDiverged, TrainingInterrupted
 from sb3_td3x.experiment.lock import RunFolderLock
-from sb3_td3x.experiment.resume import saved_config
+from sb3_td3x.experiment.resume import check_resume, saved_config
 from sb3_td3x.experiment.runner import CONFIG_FILE, run_experiment
-from sb3_td3x.experiment.schemas import ExperimentConfig
+from sb3_td3x.experiment.schemas import ExperimentConfig, public_config
 
 # Config groups of conf/config.yaml; a resumed run keeps the choices it was started with.
 CONFIG_GROUPS = ("algo", "env", "eval", "logger", "video", "debug")
@@ -59,6 +59,9 @@ def check_command_line(args: list[str], conf_dir: Path) -> None:
                 for value in values:
                     if value is not None:
                         _check_resume_dir(Path(str(value)))
+                        if len(values) == 1:
+                            resume = OmegaConf.create({"resume": str(value)})
+                            config_for_resume(resume, [a for a in args if re.match(r"^[+~]?[A-Za-z_][\w.]*=", a)])
             elif key == "run_dir" and not override.is_sweep_override() and values[0] is not None:
                 _check_new_run_dir(Path(str(values[0])))
             if not key.startswith("hydra"):
@@ -108,13 +111,13 @@ def _check_group_choice(conf_dir: Path, group: str, choice: object) -> None:
 def _check_resume_dir(run_dir: Path) -> None:
     if run_dir.exists() and not run_dir.is_dir():
         raise ConfigError(f"resume={run_dir} is a file. Pass the folder of an earlier run (it holds checkpoints/).")
+    RunFolderLock.check_free(run_dir)
     if run_dir.is_dir() and not (run_dir / CONFIG_FILE).is_file() and not (run_dir / "checkpoints").is_dir():
         raise ConfigError(
             f"resume={run_dir}: {run_dir / CONFIG_FILE} does not exist. Pass the folder of an earlier run "
             "(runs/<env>/<algo>/seed<N>/<date>), which holds config.yaml and checkpoints/."
         )
     resume_checkpoint(run_dir)
-    RunFolderLock.check_free(run_dir)
 
 
 def available_cores() -> int:
@@ -237,8 +240,8 @@ def config_for_resume(cfg: DictConfig, overrides: list[str]) -> DictConfig:
     """The config the run ``cfg.resume`` trained with (kept in its checkpoint), with the command line's overrides.
 
     ``python run.py resume=DIR total_timesteps=2000000`` continues DIR to 2M steps with everything else as saved.
-    The run then checks every change against the checkpoint (:mod:`sb3_td3x.experiment.resume`): a resume may change
-    the length, the evaluation and checkpoint frequencies, logging and the device, nothing that enters the
+    Every change is checked against the checkpoint (:func:`~sb3_td3x.experiment.resume.check_resume`): a resume may
+    change the length, the evaluation and checkpoint frequencies, logging and the device, nothing that enters the
     computation. A config group may change where it is one of those (``logger=wandb``, ``video=final``).
     """
     run_dir = Path(cfg.resume)
@@ -262,6 +265,7 @@ def config_for_resume(cfg: DictConfig, overrides: list[str]) -> DictConfig:
         OmegaConf.update(resumed, key, override.value(), merge=False)
     resumed.resume = str(run_dir)
     resumed.run_dir = str(run_dir)
+    check_resume(saved, public_config(resumed), run_dir)
     return resumed
 
 

@@ -24,6 +24,7 @@ import sys
 import time
 from pathlib import Path
 
+from sb3_td3x.common.redaction import redact
 from sb3_td3x.experiment.errors import ConfigError
 
 log = logging.getLogger(__name__)
@@ -71,7 +72,7 @@ class RunFolderLock:
             "pid": os.getpid(),
             "host": socket.gethostname(),
             "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-            "command": " ".join(sys.argv),
+            "command": " ".join(redact([Path(sys.argv[0]).name, *sys.argv[1:]])),  # a key given on the command line masked
         }
         os.ftruncate(fd, 0)
         os.pwrite(fd, (json.dumps(holder) + "\n").encode(), 0)

@@ -113,7 +113,7 @@ def _not_written(cfg: DictConfig, what: str) -> str:
     run_dir = seed_run_dirs(cfg)[0] if cfg.seeds is not None else Path(cfg.run_dir)
     step = _checkpoint_step(find_checkpoint(checkpoint_dir(run_dir, LAST)))
     if step is None:
-        return f"The run in {run_dir} stopped: {what}. It had written no checkpoint yet; free some space and start it again."
+        return f"The run in {run_dir} stopped: {what}. It had written no checkpoint yet: free some space and start it again in a new run_dir."
     return (
         f"The run in {run_dir} stopped: {what}. Its checkpoint of step {step} is whole, so nothing trained before it is "
         f"lost: free some space, then continue with: python run.py resume={run_dir}"

@@ -52,6 +52,13 @@ def test_runs_start_skip_when_done_and_resume_to_more_steps(tmp_path):
     sessions = [json.loads(line) for line in (td3x / "provenance.jsonl").read_text().splitlines()]
     assert [session["at_step"] for session in sessions] == [0, 600]
 
+    import shutil
+
+    shutil.rmtree(td3x / "checkpoints" / "last")  # only the checkpoint before it left (last.prev): still resumed
+    older = results_sh(tmp_path, "1000", "pendulum:td3:0")
+    assert older.returncode == 0 and f"resuming: {td3x}" in older.stdout, older.stdout + older.stderr
+    assert final_step(td3x) == 1000
+
 
 def test_bad_arguments_are_refused_with_a_message(tmp_path):
     steps = results_sh(tmp_path, "lots", "pendulum:td3:0")

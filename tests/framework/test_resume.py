@@ -80,7 +80,7 @@ def test_sigterm_then_resume_finishes_the_same_run(tmp_path):
     assert [session["at_step"] for session in sessions] == [0, stopped_at]  # one line per session, for the results pages
 
 
-def test_resume_takes_the_saved_config_and_plain_overrides(tmp_path):
+def test_resume_takes_the_saved_config_and_the_overrides_a_resume_may_make(tmp_path):
     cfg = compose_config(["env=inverted_pendulum", "algo=ddpg", f"run_dir={tmp_path}"])
     from omegaconf import OmegaConf
 
@@ -89,16 +89,19 @@ def test_resume_takes_the_saved_config_and_plain_overrides(tmp_path):
     for name in (META_FILE, "replay_buffer.pkl"):
         (tmp_path / "checkpoints" / "last" / name).write_text("{}")
     default = compose_config([f"resume={tmp_path}", "total_timesteps=5000"])  # composed with the default env and algo
-    resumed = config_for_resume(default, [f"resume={tmp_path}", "total_timesteps=5000", "algo.tau=0.01"])
-    assert (resumed.env.id, resumed.algo.name, resumed.total_timesteps, resumed.algo.tau) == (
+    resumed = config_for_resume(default, [f"resume={tmp_path}", "total_timesteps=5000", "eval.freq=100", "logger=none"])
+    assert (resumed.env.id, resumed.algo.name, resumed.total_timesteps, resumed.eval.freq, resumed.logger.name) == (
         "InvertedPendulum-v5",
         "ddpg",
         5000,
-        0.01,
+        100,
+        "none",
     )
     assert resumed.run_dir == str(tmp_path)
     with pytest.raises(ConfigError, match="config group 'env'"):
         config_for_resume(default, [f"resume={tmp_path}", "env=ant"])
+    with pytest.raises(ConfigError, match=r"cannot change algo.tau: 0.005 in the checkpoint, 0.01 asked"):
+        config_for_resume(default, [f"resume={tmp_path}", "algo.tau=0.01"])
 
 
 def test_a_checkpoint_cut_between_its_renames_is_still_found(tmp_path):

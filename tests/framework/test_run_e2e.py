@@ -102,7 +102,9 @@ def test_run_py_writes_a_complete_run_folder(tmp_path):
     assert {MODEL_FILE, REPLAY_BUFFER_FILE, STATE_FILE, META_FILE} <= {p.name for p in last.iterdir()}
     assert json.loads((last / META_FILE).read_text())["num_timesteps"] == 2000
     assert {MODEL_FILE, STATE_FILE, META_FILE} <= {p.name for p in best.iterdir()}
-    assert not list((run_dir / "checkpoints").glob("*.tmp")) and not list((run_dir / "checkpoints").glob("*.prev"))
+    assert not list((run_dir / "checkpoints").glob("*.tmp"))
+    previous = json.loads((run_dir / "checkpoints" / "last.prev" / META_FILE).read_text())  # the one before, kept whole
+    assert previous["num_timesteps"] < 2000 and REPLAY_BUFFER_FILE in previous["files"]
 
     # learning curve
     image = Image.open(run_dir / "learning_curve.png")

@@ -1,0 +1,26 @@
+"""Twenty SIGKILLs at random moments (in start-up, training and checkpoint saves, every 25 steps), each followed by
+``resume=``: the run ends bit-identical to one never killed (``scripts/kill_loop.py``)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+@pytest.mark.slow
+def test_twenty_kills_end_as_the_run_never_killed(tmp_path):
+    result = subprocess.run(
+        [sys.executable, "scripts/kill_loop.py", "--kills", "20", "--work", str(tmp_path)],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=600,
+        check=False,
+    )
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    assert "20 kills" in result.stdout and "bit-identical to the run never killed" in result.stdout
