@@ -55,7 +55,7 @@ class RunFolderLock:
         path = run_dir / LOCK_FILE
         fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
         try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            _flock_soon(fd)
         except OSError as error:
             os.close(fd)
             if error.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
@@ -98,6 +98,19 @@ class RunFolderLock:
         if self._fd is not None:
             os.close(self._fd)  # closing the file drops the lock
             self._fd = None
+
+
+def _flock_soon(fd: int, tries: int = 20) -> None:
+    """Take the exclusive lock, trying again for a moment: :meth:`RunFolderLock.check_free` of another process may
+    hold a shared lock for an instant."""
+    for attempt in range(tries):
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            return
+        except OSError as error:
+            if error.errno not in (errno.EWOULDBLOCK, errno.EAGAIN) or attempt == tries - 1:
+                raise
+            time.sleep(0.05)
 
 
 def _busy_message(run_dir: Path) -> str:
