@@ -81,7 +81,7 @@ class PeriodicEvaluation(BaseCallback):
         self.value_horizon_tolerance = value_horizon_tolerance
         self.history: list[dict[str, float]] = []
         self.timing: dict[str, float] = {}  # seconds of the last evaluation: episodes, value measurement
-        self._warned_value_bias = False
+        self._said_value_reasons: set[str] = set()  # kinds of NaN already logged
 
     @property
     def last_timesteps(self) -> int:
@@ -137,9 +137,8 @@ class PeriodicEvaluation(BaseCallback):
             values, reason = measure_value_bias(self.model, recorder.episodes, self.value_horizon_tolerance)
             self.timing["value_bias_s"] = time.perf_counter() - started
             result.update(values)
-            if reason is not None and not self._warned_value_bias:
-                log.warning("Value measurement at step %d gives NaN: %s (said once per run)", self.num_timesteps, reason)
-                self._warned_value_bias = True
+            if reason is not None:
+                self._say_value_reason(values, reason)
         self.history.append(result)
         self._write_history()
         self.logger.record("eval/mean_reward", result["mean_return"])
@@ -153,6 +152,23 @@ class PeriodicEvaluation(BaseCallback):
         for listener in self.listeners:
             listener(result)
         return result
+
+    def _say_value_reason(self, values: dict[str, float], reason: str) -> None:
+        """Log why a value column is NaN, once per run and kind.
+
+        No state kept (``value_states`` 0) follows from the configuration: every episode was cut by its time limit
+        before a state's return is known to the tolerance (Pendulum-v1's 200 steps with gamma 0.99, the README's first
+        run), so it is said at INFO. A NaN with states kept (the normalised bias of returns that cancel) is a
+        WARNING.
+        """
+        kind = "no_state" if values["value_states"] == 0 else "nan"
+        if kind in self._said_value_reasons:
+            return
+        self._said_value_reasons.add(kind)
+        if kind == "no_state":
+            log.info("Value measurement at step %d: no value columns (NaN): %s (said once per run)", self.num_timesteps, reason)
+        else:
+            log.warning("Value measurement at step %d gives NaN: %s (said once per run)", self.num_timesteps, reason)
 
     def _write_history(self) -> None:
         # NaN (a value measurement without states) as null: strict JSON readers refuse NaN

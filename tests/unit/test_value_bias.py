@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import json
+import logging
 import math
 
 import gymnasium as gym
@@ -20,6 +21,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 from stable_baselines3.td3.policies import TD3Policy
 
 from sb3_td3x import TD3X
+from sb3_td3x.experiment import callbacks
 from sb3_td3x.experiment.callbacks import PeriodicEvaluation
 from sb3_td3x.experiment.value_bias import (
     VALUE_FIELDS,
@@ -223,15 +225,36 @@ def test_switched_off_there_are_no_columns(tmp_path):
                                                               "wall_time"]
 
 
-def test_no_state_to_measure_is_nan_not_zero(tmp_path):
+def test_no_state_to_measure_is_nan_not_zero(tmp_path, caplog):
     callback = evaluation(tmp_path, make_model(), value_horizon_tolerance=0.0)
     callback.eval_env = DummyVecEnv([lambda: make_env(first=1)])  # the truncated episode only
     callback.n_episodes = 1
-    result = callback.evaluate()  # tolerance 0: no state of a truncated episode counts
+    with caplog.at_level(logging.INFO, logger="sb3_td3x"):
+        result = callback.evaluate()  # tolerance 0: no state of a truncated episode counts
+        callback.evaluate()
     assert result["value_states"] == 0 and all(math.isnan(result[key]) for key in VALUE_FIELDS[:4])
-    (row,) = read_csv(tmp_path / "evaluations.csv")
+    # The configuration's consequence, said once at INFO (Pendulum-v1's first run must not warn)
+    said = [record for record in caplog.records if "Value measurement" in record.getMessage()]
+    assert [record.levelno for record in said] == [logging.INFO] and "time limit" in said[0].getMessage()
+    row = read_csv(tmp_path / "evaluations.csv")[0]
     assert row["value_estimate"] == "nan" and row["value_states"] == "0"
     assert json.loads((tmp_path / "evaluations.json").read_text())[0]["value_estimate"] is None  # strict JSON
+
+
+def test_a_nan_with_states_kept_is_a_warning(tmp_path, caplog, monkeypatch):
+    """A NaN that the configuration does not explain (the normalised bias of returns that cancel) stays a WARNING,
+    also after the INFO line of an evaluation without states."""
+    nan, reasons = math.nan, iter(["no state", "the mean true value 0 is about 0"])
+    outcomes = iter([{key: nan for key in VALUE_FIELDS[:4]} | {"value_states": 0},
+                     {key: 1.0 for key in VALUE_FIELDS[:3]} | {"normalized_bias": nan, "value_states": 6}])
+    monkeypatch.setattr(callbacks, "measure_value_bias", lambda model, episodes, tolerance: (next(outcomes), next(reasons)))
+    callback = evaluation(tmp_path, make_model(), value_horizon_tolerance=TOLERANCE)
+    with caplog.at_level(logging.INFO, logger="sb3_td3x"):
+        callback.evaluate()
+        callback.evaluate()
+    said = [record for record in caplog.records if "Value measurement" in record.getMessage()]
+    assert [record.levelno for record in said] == [logging.INFO, logging.WARNING]
+    assert "about 0" in said[1].getMessage()
 
 
 def test_no_state_says_which_tolerance_would_keep_one():
