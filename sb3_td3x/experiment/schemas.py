@@ -263,7 +263,7 @@ def compose_config(overrides: list[str] | None = None, conf_dir: Path = CONF_DIR
 
     ``run_dir`` keeps its default interpolation; set it before :func:`~sb3_td3x.experiment.runner.run_experiment`.
     """
-    with initialize_config_dir(config_dir=str(conf_dir), version_base="1.3"):
+    with initialize_config_dir(config_dir=str(Path(conf_dir).resolve()), version_base="1.3"):
         return compose(config_name="config", overrides=integer_overrides(list(overrides or [])))
 
 
