@@ -168,7 +168,7 @@ class ExperimentConfig:
     logger: LoggerConfig = MISSING
     checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
     video: VideoConfig | None = None
-    seed: int = 0
+    seed: int = II("td3x.first_seed:${seeds}")  # 0, or with seeds=[...] the first of them (its run folder is Hydra's)
     # Several seeds trained together in this process (sb3_td3x.SeedBatch), each as its lone seed= run: seeds=[0,1,2]
     seeds: list[int] | None = None
     # Set by the run (not by hand): each seed's run folder, saved in every seed's config.yaml so that resume=<any
@@ -213,6 +213,12 @@ def _if_resume(resume: str | None, when_resuming: Any, otherwise: Any) -> Any:
     return otherwise if resume is None else when_resuming
 
 
+def _first_seed(seeds: Any) -> int:
+    """The default ``seed``: 0, or the first of ``seeds=[...]``, whose folder Hydra then makes (cli.seed_folders
+    names the others alike)."""
+    return int(seeds[0]) if seeds else 0
+
+
 def _seed_label(seed: int, seeds: Any) -> str:
     """``seed3``, or ``seeds1-3`` for a batch (``seeds=[1,3]``): a multirun job's folder name."""
     return f"seed{seed}" if seeds is None else "seeds" + "-".join(str(s) for s in seeds)
@@ -222,6 +228,8 @@ register_configs()
 if not OmegaConf.has_resolver("td3x.if_resume"):
     # conf/config.yaml: a resumed run goes on in the folder it resumes
     OmegaConf.register_new_resolver("td3x.if_resume", _if_resume)
+if not OmegaConf.has_resolver("td3x.first_seed"):
+    OmegaConf.register_new_resolver("td3x.first_seed", _first_seed)
 if not OmegaConf.has_resolver("td3x.seed_label"):
     # conf/config.yaml: a multirun job's folder names its seed, or its batch's seeds
     OmegaConf.register_new_resolver("td3x.seed_label", _seed_label)
@@ -283,7 +291,7 @@ def check_config(cfg: DictConfig) -> None:
         if not seeds or min(seeds) < 0 or len(set(seeds)) != len(seeds):
             problems.append(f"seeds={seeds} must list distinct seeds >= 0, e.g. seeds=[0,1,2]")
         elif cfg.seed not in seeds:
-            problems.append(f"seed={cfg.seed} is not one of seeds={seeds}; drop seed= (run.py sets it to the first seed)")
+            problems.append(f"seed={cfg.seed} is not one of seeds={seeds}; drop seed= (it is then the first seed)")
         if cfg.seed_run_dirs is not None and len(cfg.seed_run_dirs) != len(seeds):
             problems.append(f"seed_run_dirs has {len(cfg.seed_run_dirs)} folders for {len(seeds)} seeds; leave it unset")
     need(cfg.torch_threads is None or cfg.torch_threads >= 1, f"torch_threads={cfg.torch_threads} must be >= 1 or null")
