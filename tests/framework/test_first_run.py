@@ -28,4 +28,5 @@ def test_the_readme_first_run_prints_no_warning(tmp_path):
     alarms = [line for line in output.splitlines() if ALARM.search(line)]
     assert not alarms, "\n".join(alarms)
     (run_dir,) = (tmp_path / "runs" / "pendulum" / "td3" / "seed0").iterdir()  # the folder the README names
-    assert (run_dir / "evaluations.csv").is_file()
+    assert {"evaluations.csv", "checkpoints", "learning_curve.png", "tb"} <= {path.name for path in run_dir.iterdir()}
+    assert any((run_dir / "tb").glob("events.out.tfevents.*"))
