@@ -15,7 +15,7 @@ import math
 import re
 from dataclasses import dataclass, field, fields, make_dataclass
 from pathlib import Path
-from typing import Any, Optional, get_type_hints
+from typing import Any, get_type_hints
 
 import gymnasium as gym
 import torch
@@ -45,21 +45,21 @@ def _field_type(annotation: str) -> Any:
     plain = [_SIMPLE_TYPES[member] for member in members if member in _SIMPLE_TYPES]
     if len(plain) != 1:
         return None
-    return Optional[plain[0]] if "None" in members else plain[0]  # noqa: UP045 (OmegaConf's form)
+    return plain[0] | None if "None" in members else plain[0]
 
 
 def constructor_fields(cls: type = TD3X) -> dict[str, tuple[Any, Any]]:
     """``{name: (type, default)}`` of the arguments of ``cls.__init__`` that the algo config holds under the same
     name: those with a default and a plain type, except :data:`SET_BY_THE_RUN` and private ones."""
-    fields = {}
+    result = {}
     for name, parameter in inspect.signature(cls.__init__).parameters.items():
         if parameter.default is inspect.Parameter.empty or name.startswith("_") or name in SET_BY_THE_RUN:
             continue
-        annotation = parameter.annotation if isinstance(parameter.annotation, str) else parameter.annotation.__name__
-        kind = _field_type(annotation)
+        annotation = parameter.annotation
+        kind = _field_type(annotation if isinstance(annotation, str) else getattr(annotation, "__name__", str(annotation)))
         if kind is not None:
-            fields[name] = (kind, parameter.default)
-    return fields
+            result[name] = (kind, parameter.default)
+    return result
 
 
 def _algo_config() -> type:
@@ -74,8 +74,8 @@ def _algo_config() -> type:
         # std of the Gaussian exploration noise N(0, sigma) in units of the [-1, 1] action scale (SB3's
         # action_noise); 0: none, TD3X's default
         ("exploration_noise", float, field(default=0.0)),
-        # policy_kwargs: the layer widths (None: the policy's default, 400-300) and the number of critics
-        ("net_arch", Optional[list[int]], field(default=policy_defaults["net_arch"].default)),  # noqa: UP045
+        # policy_kwargs: the layer widths (None: the policy's default, 400-300 for MlpPolicy) and the number of critics
+        ("net_arch", list[int] | None, field(default=policy_defaults["net_arch"].default)),
         ("n_critics", int, field(default=policy_defaults["n_critics"].default)),
         ("train_freq_unit", str, field(default="step")),  # with train_freq, SB3's (train_freq, unit): "step" or "episode"
     ]
@@ -242,7 +242,7 @@ def _integer_keys() -> set[str]:
     keys = set()
     for prefix, schema in groups.items():
         for name, hint in get_type_hints(schema).items():
-            if hint in (int, Optional[int]):  # noqa: UP045
+            if hint in (int, int | None):
                 keys.add(f"{prefix}.{name}" if prefix else name)
     return keys
 
