@@ -7,6 +7,7 @@ its default is an error rather than silently ignored.
 
 from __future__ import annotations
 
+import inspect
 from typing import Any
 
 import numpy as np
@@ -20,17 +21,13 @@ from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_td3x import TD3X
 from sb3_td3x.experiment.errors import ConfigError
+from sb3_td3x.experiment.schemas import constructor_fields
 
-# AlgoConfig fields that are not constructor arguments, or not under the same name.
-_TRANSLATED = ("_target_", "name", "policy", "exploration_noise", "net_arch", "n_critics", "train_freq", "train_freq_unit")
-# TD3X arguments that SB3's TD3 lacks, with the value at which TD3X behaves as SB3's TD3 does.
+# TD3X arguments that SB3's TD3 lacks, with TD3X's defaults, at which TD3X computes what SB3's TD3 does.
 _TD3X_ONLY = {
-    "critic_learning_rate": None,
-    "target_policy_smoothing": True,
-    "clipped_double_q": True,
-    "bf16": False,
-    "compile_update": False,
-    "cuda_graph": False,
+    name: default
+    for name, (_, default) in constructor_fields(TD3X).items()
+    if name not in inspect.signature(TD3.__init__).parameters
 }
 
 
@@ -53,7 +50,7 @@ def algorithm_kwargs(algo_cfg: DictConfig, n_actions: int) -> dict[str, Any]:
     ``exploration_noise`` becomes ``NormalActionNoise(0, sigma)`` (no noise object when sigma is 0), ``net_arch``
     and ``n_critics`` go into ``policy_kwargs``, ``train_freq`` and ``train_freq_unit`` make SB3's tuple.
     """
-    kwargs = {key: algo_cfg[key] for key in algo_cfg if key not in _TRANSLATED}
+    kwargs = {key: algo_cfg[key] for key in constructor_fields(TD3X)}
     if issubclass(algorithm_class(algo_cfg), TD3):
         changed = [f"algo.{key}={kwargs[key]}" for key, default in _TD3X_ONLY.items() if kwargs[key] != default]
         if changed:
@@ -65,7 +62,8 @@ def algorithm_kwargs(algo_cfg: DictConfig, n_actions: int) -> dict[str, Any]:
     if algo_cfg.exploration_noise > 0:
         sigma = algo_cfg.exploration_noise * np.ones(n_actions, dtype=np.float32)
         kwargs["action_noise"] = NormalActionNoise(mean=np.zeros(n_actions, dtype=np.float32), sigma=sigma)
-    kwargs["policy_kwargs"] = {"net_arch": list(algo_cfg.net_arch), "n_critics": algo_cfg.n_critics}
+    net_arch = None if algo_cfg.net_arch is None else list(algo_cfg.net_arch)  # None: the policy's default
+    kwargs["policy_kwargs"] = {"net_arch": net_arch, "n_critics": algo_cfg.n_critics}
     kwargs["train_freq"] = (algo_cfg.train_freq, algo_cfg.train_freq_unit)
     return kwargs
 

@@ -31,7 +31,7 @@ from tqdm import tqdm
 
 from sb3_td3x.experiment.checkpoints import BEST, LAST, checkpoint_dir, save_checkpoint
 from sb3_td3x.experiment.errors import TrainingDiverged, TrainingInterrupted
-from sb3_td3x.experiment.value_bias import VALUE_FIELDS, EpisodeRecorder, measure_value_bias
+from sb3_td3x.experiment.value_bias import VALUE_FIELDS, Episode, EpisodeRecorder, cut_at_time_limit, measure_value_bias
 
 log = logging.getLogger(__name__)
 
@@ -81,7 +81,7 @@ class PeriodicEvaluation(BaseCallback):
         self.value_horizon_tolerance = value_horizon_tolerance
         self.history: list[dict[str, float]] = []
         self.timing: dict[str, float] = {}  # seconds of the last evaluation: episodes, value measurement
-        self._warned_value_bias = False
+        self._said_value_reasons: set[str] = set()  # kinds of NaN already logged
 
     @property
     def last_timesteps(self) -> int:
@@ -137,9 +137,8 @@ class PeriodicEvaluation(BaseCallback):
             values, reason = measure_value_bias(self.model, recorder.episodes, self.value_horizon_tolerance)
             self.timing["value_bias_s"] = time.perf_counter() - started
             result.update(values)
-            if reason is not None and not self._warned_value_bias:
-                log.warning("Value measurement at step %d gives NaN: %s (said once per run)", self.num_timesteps, reason)
-                self._warned_value_bias = True
+            if reason is not None:
+                self._say_value_reason(values, recorder.episodes, reason)
         self.history.append(result)
         self._write_history()
         self.logger.record("eval/mean_reward", result["mean_return"])
@@ -153,6 +152,29 @@ class PeriodicEvaluation(BaseCallback):
         for listener in self.listeners:
             listener(result)
         return result
+
+    def _say_value_reason(self, values: dict[str, float], episodes: list[Episode], reason: str) -> None:
+        """Log why a value column is NaN, once per run and kind.
+
+        No state kept because every episode ran to the evaluation env's time limit, which is shorter than a state
+        needs for its return to be known to the tolerance (Pendulum-v1's 200 steps with gamma 0.99, the README's first
+        run), follows from the configuration: said at INFO. Any other NaN (episodes cut before their time limit, the
+        normalised bias of returns that cancel) is a WARNING.
+        """
+        expected = values["value_states"] == 0 and cut_at_time_limit(episodes, self._time_limit())
+        kind = "expected" if expected else "unexpected"
+        if kind in self._said_value_reasons:
+            return
+        self._said_value_reasons.add(kind)
+        if expected:
+            log.info("Value measurement at step %d: no value columns (NaN): %s (said once per run)", self.num_timesteps, reason)
+        else:
+            log.warning("Value measurement at step %d gives NaN: %s (said once per run)", self.num_timesteps, reason)
+
+    def _time_limit(self) -> int | None:
+        """The evaluation env's time limit (its spec's ``max_episode_steps``), None when it has none."""
+        spec = self.eval_env.get_attr("spec", indices=[0])[0]
+        return None if spec is None else spec.max_episode_steps
 
     def _write_history(self) -> None:
         # NaN (a value measurement without states) as null: strict JSON readers refuse NaN

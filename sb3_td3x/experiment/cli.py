@@ -153,14 +153,8 @@ def main(cfg: DictConfig) -> float:
         if cfg.resume is not None:
             cfg = config_for_resume(cfg, list(hydra_cfg.overrides.task))
         else:
-            if cfg.seeds is not None:
-                if len(cfg.seeds) == 0:
-                    raise ConfigError("seeds=[] lists no seed; list the seeds to train together, e.g. seeds=[0,1,2]")
-                overridden = {o.split("=", 1)[0].lstrip("+~") for o in hydra_cfg.overrides.task}
-                if "seed" not in overridden and cfg.seed not in cfg.seeds:
-                    cfg.seed = cfg.seeds[0]
-                if cfg.seed_run_dirs is None:
-                    cfg.seed_run_dirs = seed_folders(Path(hydra_cfg.runtime.output_dir), cfg.seed, list(cfg.seeds))
+            if cfg.seeds is not None and cfg.seed_run_dirs is None:
+                cfg.seed_run_dirs = seed_folders(Path(hydra_cfg.runtime.output_dir), cfg.seed, list(cfg.seeds))
             cfg.run_dir = hydra_cfg.runtime.output_dir
         if cfg.torch_threads is None and hydra_cfg.mode == RunMode.MULTIRUN:
             # Jobs side by side share the cores; a single run keeps them all (1.6x faster than one thread for
@@ -191,26 +185,6 @@ def seed_folders(output_dir: Path, seed: int, seeds: list[int]) -> list[str]:
         return [str(seed_run_dir(output_dir, s)) for s in seeds]
     at = len(parts) - 1 - parts[::-1].index(f"seed{seed}")
     return [str(Path(*parts[:at], f"seed{s}", *parts[at + 1 :])) for s in seeds]
-
-
-def first_seed_override(args: list[str]) -> list[str]:
-    """``args`` with ``seed=<first>`` added to a ``seeds=[...]`` given without ``seed=``: Hydra then makes the first
-    seed's folder, where its record and log go (``seed_folders`` derives the others from it)."""
-    parser = OverridesParser.create()
-    seeds, has_seed = None, False
-    for arg in args:
-        try:
-            override = parser.parse_override(arg)
-        except Exception:
-            continue
-        if override.key_or_group == "seed":
-            has_seed = True
-        elif override.key_or_group == "seeds" and not override.is_sweep_override():
-            value = override.value()
-            seeds = value if isinstance(value, list) else None
-    if seeds and not has_seed and isinstance(seeds[0], int):
-        return [*args, f"seed={seeds[0]}"]
-    return args
 
 
 def redact_hydra_records(hydra_cfg: DictConfig) -> None:

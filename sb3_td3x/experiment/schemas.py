@@ -10,80 +10,87 @@ checks ranges and names (``algo.tau`` in [0, 1] as TD3X's constructor checks it,
 from __future__ import annotations
 
 import difflib
+import inspect
 import math
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields, make_dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, get_type_hints
 
 import gymnasium as gym
 import torch
 from hydra import compose, initialize_config_dir
 from hydra.core.config_store import ConfigStore
 from omegaconf import II, MISSING, DictConfig, OmegaConf
+from stable_baselines3.td3.policies import TD3Policy
 
 from sb3_td3x.common.redaction import redact
 from sb3_td3x.experiment.errors import ConfigError
+from sb3_td3x.td3x.presets import PRESETS
 from sb3_td3x.td3x.td3x import TD3X
-
-# AlgoConfig fields checked by TD3X's constructor itself (TD3X.hyperparameter_problems), not again here.
-CONSTRUCTOR_CHECKED = (
-    "learning_rate",
-    "critic_learning_rate",
-    "buffer_size",
-    "learning_starts",
-    "batch_size",
-    "tau",
-    "gamma",
-    "gradient_steps",
-    "n_steps",
-    "policy_delay",
-    "target_policy_noise",
-    "target_noise_clip",
-)
 
 # conf/ of a source checkout (run.py's config_path).
 CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
 
+# TD3X's constructor arguments that the run sets, not the algo config: seed and device (top-level fields), verbose,
+# and TensorBoard (the logger group).
+SET_BY_THE_RUN = ("seed", "device", "verbose", "tensorboard_log")
+_SIMPLE_TYPES: dict[str, type] = {"int": int, "float": float, "bool": bool, "str": str}
 
-@dataclass
-class AlgoConfig:
-    """Constructor arguments of :class:`sb3_td3x.TD3X` (same names), plus the few that SB3 takes as objects.
 
-    ``exploration_noise`` is the std of the Gaussian action noise N(0, sigma) (SB3's ``action_noise``),
-    ``net_arch`` and ``n_critics`` go into ``policy_kwargs``, and ``train_freq`` / ``train_freq_unit``
-    make SB3's ``(train_freq, unit)`` tuple.
-    """
+def _field_type(annotation: str) -> Any:
+    """The config type of a constructor argument annotated ``annotation`` (``float | Schedule | None`` gives
+    ``float | None``): its one plain type, or None when it has none (an object such as ``action_noise``)."""
+    members = [member.strip() for member in annotation.split("|")]
+    plain = [_SIMPLE_TYPES[member] for member in members if member in _SIMPLE_TYPES]
+    if len(plain) != 1:
+        return None
+    return plain[0] | None if "None" in members else plain[0]
 
-    _target_: str = "sb3_td3x.TD3X"  # the algorithm class
-    name: str = MISSING  # short name used in run folders and tables, e.g. "td3"
-    policy: str = "MlpPolicy"
-    learning_rate: float = 1e-3
-    critic_learning_rate: float | None = None  # None: same as learning_rate
-    buffer_size: int = 1_000_000
-    learning_starts: int = II("env.learning_starts")  # uniformly random actions, no training, before this step
-    batch_size: int = 100
-    tau: float = 0.005
-    gamma: float = 0.99
-    train_freq: int = 1
-    train_freq_unit: str = "step"  # "step" or "episode"
-    gradient_steps: int = 1  # -1: as many gradient steps as environment steps collected (SB3's convention)
-    n_steps: int = 1  # n-step returns (SB3 >= 2.7); 1 is the paper's one-step TD target
-    policy_delay: int = 2
-    target_policy_noise: float = 0.2
-    target_noise_clip: float = 0.5
-    target_policy_smoothing: bool = True
-    clipped_double_q: bool = True
-    exploration_noise: float = 0.1  # std of the Gaussian exploration noise, in units of the [-1, 1] action scale
-    net_arch: list[int] = field(default_factory=lambda: [400, 300])
-    n_critics: int = 2
-    optimize_memory_usage: bool = False
-    stats_window_size: int = 100  # episodes averaged in rollout/ep_rew_mean
-    # Opt-in accelerations of TD3X (docs/performance.md): bf16 products (pays off with AMX or on a GPU; emulated,
-    # much slower, on an AVX2 CPU), torch.compile of the update, CUDA graph capture (device=cuda)
-    bf16: bool = False
-    compile_update: bool = False
-    cuda_graph: bool = False
+
+def constructor_fields(cls: type = TD3X) -> dict[str, tuple[Any, Any]]:
+    """``{name: (type, default)}`` of the arguments of ``cls.__init__`` that the algo config holds under the same
+    name: those with a default and a plain type, except :data:`SET_BY_THE_RUN` and private ones."""
+    result = {}
+    for name, parameter in inspect.signature(cls.__init__).parameters.items():
+        if parameter.default is inspect.Parameter.empty or name.startswith("_") or name in SET_BY_THE_RUN:
+            continue
+        annotation = parameter.annotation
+        kind = _field_type(annotation if isinstance(annotation, str) else getattr(annotation, "__name__", str(annotation)))
+        if kind is not None:
+            result[name] = (kind, parameter.default)
+    return result
+
+
+def _algo_config() -> type:
+    """The schema of ``conf/algo/``: every argument of :func:`constructor_fields` with TD3X's own default, so that a
+    default is written once (TD3X's signature) and a YAML says only where it departs (the paper's values in
+    ``conf/algo/td3.yaml``). Plus the arguments SB3 takes as objects, with the values that give TD3X's defaults."""
+    policy_defaults = inspect.signature(TD3Policy.__init__).parameters
+    translated = [
+        ("_target_", str, field(default="sb3_td3x.TD3X")),  # the algorithm class
+        ("name", str, field(default=MISSING)),  # short name used in run folders and tables, e.g. "td3"
+        ("policy", str, field(default="MlpPolicy")),
+        # std of the Gaussian exploration noise N(0, sigma) in units of the [-1, 1] action scale (SB3's
+        # action_noise); 0: none, TD3X's default
+        ("exploration_noise", float, field(default=0.0)),
+        # policy_kwargs: the layer widths (None: the policy's default, 400-300 for MlpPolicy) and the number of critics
+        ("net_arch", list[int] | None, field(default=policy_defaults["net_arch"].default)),
+        ("n_critics", int, field(default=policy_defaults["n_critics"].default)),
+        ("train_freq_unit", str, field(default="step")),  # with train_freq, SB3's (train_freq, unit): "step" or "episode"
+    ]
+    derived = [(name, kind, field(default=default)) for name, (kind, default) in constructor_fields().items()]
+    schema = make_dataclass("AlgoConfig", translated[:3] + derived + translated[3:])
+    schema.__module__ = __name__
+    schema.__doc__ = (
+        "Constructor arguments of :class:`sb3_td3x.TD3X` (same names and defaults, read from its signature), plus "
+        "``exploration_noise`` (SB3's ``action_noise``), ``net_arch`` and ``n_critics`` (``policy_kwargs``) and "
+        "``train_freq_unit`` (with ``train_freq``, SB3's tuple)."
+    )
+    return schema
+
+
+AlgoConfig = _algo_config()
 
 
 @dataclass
@@ -161,7 +168,7 @@ class ExperimentConfig:
     logger: LoggerConfig = MISSING
     checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
     video: VideoConfig | None = None
-    seed: int = 0
+    seed: int = II("td3x.first_seed:${seeds}")  # 0, or with seeds=[...] the first of them (its run folder is Hydra's)
     # Several seeds trained together in this process (sb3_td3x.SeedBatch), each as its lone seed= run: seeds=[0,1,2]
     seeds: list[int] | None = None
     # Set by the run (not by hand): each seed's run folder, saved in every seed's config.yaml so that resume=<any
@@ -183,14 +190,33 @@ def register_configs() -> None:
     cs = ConfigStore.instance()
     cs.store(name="base_config", node=ExperimentConfig)
     cs.store(group="algo", name="base_algo", node=AlgoConfig)
+    for name, kwargs in PRESETS.items():  # conf/algo/<preset>.yaml: `- preset@_here_: <preset>` in its defaults
+        cs.store(group="algo/preset", name=name, node=preset_config(kwargs))
     cs.store(group="env", name="base_env", node=EnvConfig)
     cs.store(group="eval", name="base_eval", node=EvalConfig)
     cs.store(group="logger", name="base_logger", node=LoggerConfig)
     cs.store(group="video", name="base_video", node=VideoConfig)
 
 
+def preset_config(kwargs: dict[str, Any]) -> dict[str, Any]:
+    """A preset's ``TD3X`` keyword arguments (:data:`sb3_td3x.PRESETS`) as algo config fields: ``policy_kwargs``'s
+    ``net_arch`` and ``n_critics`` become fields of their own."""
+    config = {key: value for key, value in kwargs.items() if key != "policy_kwargs"}
+    config.update(kwargs.get("policy_kwargs", {}))
+    unknown = sorted(set(config) - {f.name for f in fields(AlgoConfig)})
+    if unknown:
+        raise ValueError(f"a preset sets {', '.join(unknown)}, which the algo config has no field for")
+    return config
+
+
 def _if_resume(resume: str | None, when_resuming: Any, otherwise: Any) -> Any:
     return otherwise if resume is None else when_resuming
+
+
+def _first_seed(seeds: Any) -> int:
+    """The default ``seed``: 0, or the first of ``seeds=[...]``, whose folder Hydra then makes (cli.seed_folders
+    names the others alike)."""
+    return int(seeds[0]) if seeds else 0
 
 
 def _seed_label(seed: int, seeds: Any) -> str:
@@ -202,6 +228,8 @@ register_configs()
 if not OmegaConf.has_resolver("td3x.if_resume"):
     # conf/config.yaml: a resumed run goes on in the folder it resumes
     OmegaConf.register_new_resolver("td3x.if_resume", _if_resume)
+if not OmegaConf.has_resolver("td3x.first_seed"):
+    OmegaConf.register_new_resolver("td3x.first_seed", _first_seed)
 if not OmegaConf.has_resolver("td3x.seed_label"):
     # conf/config.yaml: a multirun job's folder names its seed, or its batch's seeds
     OmegaConf.register_new_resolver("td3x.seed_label", _seed_label)
@@ -213,8 +241,8 @@ def _integer_keys() -> set[str]:
               "logger": LoggerConfig, "video": VideoConfig, "": ExperimentConfig}
     keys = set()
     for prefix, schema in groups.items():
-        for name, annotation in schema.__annotations__.items():
-            if annotation in ("int", "int | None"):
+        for name, hint in get_type_hints(schema).items():
+            if hint in (int, int | None):
                 keys.add(f"{prefix}.{name}" if prefix else name)
     return keys
 
@@ -243,7 +271,7 @@ def compose_config(overrides: list[str] | None = None, conf_dir: Path = CONF_DIR
 
     ``run_dir`` keeps its default interpolation; set it before :func:`~sb3_td3x.experiment.runner.run_experiment`.
     """
-    with initialize_config_dir(config_dir=str(conf_dir), version_base="1.3"):
+    with initialize_config_dir(config_dir=str(Path(conf_dir).resolve()), version_base="1.3"):
         return compose(config_name="config", overrides=integer_overrides(list(overrides or [])))
 
 
@@ -263,7 +291,7 @@ def check_config(cfg: DictConfig) -> None:
         if not seeds or min(seeds) < 0 or len(set(seeds)) != len(seeds):
             problems.append(f"seeds={seeds} must list distinct seeds >= 0, e.g. seeds=[0,1,2]")
         elif cfg.seed not in seeds:
-            problems.append(f"seed={cfg.seed} is not one of seeds={seeds}; drop seed= (run.py sets it to the first seed)")
+            problems.append(f"seed={cfg.seed} is not one of seeds={seeds}; drop seed= (it is then the first seed)")
         if cfg.seed_run_dirs is not None and len(cfg.seed_run_dirs) != len(seeds):
             problems.append(f"seed_run_dirs has {len(cfg.seed_run_dirs)} folders for {len(seeds)} seeds; leave it unset")
     need(cfg.torch_threads is None or cfg.torch_threads >= 1, f"torch_threads={cfg.torch_threads} must be >= 1 or null")
@@ -271,7 +299,7 @@ def check_config(cfg: DictConfig) -> None:
 
     algo = cfg.algo
     # The constructor's own range checks (TD3X.hyperparameter_problems): one source of truth for both.
-    for name, allowed in TD3X.hyperparameter_problems(**{name: algo[name] for name in CONSTRUCTOR_CHECKED}):
+    for name, allowed in TD3X.hyperparameter_problems(**{name: algo[name] for name in constructor_fields()}):
         problems.append(f"algo.{name}={algo[name]} must be {allowed}")
     need(algo.train_freq >= 1, f"algo.train_freq={algo.train_freq} must be >= 1")
     need(
@@ -280,8 +308,8 @@ def check_config(cfg: DictConfig) -> None:
     )
     need(algo.exploration_noise >= 0, f"algo.exploration_noise={algo.exploration_noise} must be >= 0")
     need(
-        len(algo.net_arch) > 0 and min(algo.net_arch) >= 1,
-        f"algo.net_arch={list(algo.net_arch)} must list positive layer widths",
+        algo.net_arch is None or (len(algo.net_arch) > 0 and min(algo.net_arch) >= 1),
+        f"algo.net_arch={algo.net_arch} must list positive layer widths, or be null for the policy's default",
     )
     need(algo.n_critics >= 1, f"algo.n_critics={algo.n_critics} must be >= 1")
 

@@ -33,7 +33,9 @@ runs anyway (no extra episode):
   ``normalized_bias`` = overestimation / |true_value| (the issue's REDQ-style normalisation, Chen et al. 2021; REDQ's
   released code divides each state's bias by max(|G_t|, 10) before averaging instead), ``value_states`` = how many
   states were kept. With no state kept (e.g. Pendulum-v1's 200-step episodes, always truncated, with the default
-  tolerance), every value is NaN and ``value_states`` 0. ``normalized_bias`` is NaN when |mean G| is below
+  tolerance), every value is NaN and ``value_states`` 0: when every episode ran to its time limit
+  (:func:`cut_at_time_limit`), a consequence of the configuration, which
+  :class:`~sb3_td3x.experiment.callbacks.PeriodicEvaluation` logs once at INFO with :func:`no_state_reason`. ``normalized_bias`` is NaN when |mean G| is below
   :data:`NORMALIZATION_FLOOR` times the mean |G|: returns of both signs cancel and the ratio would measure the
   cancellation, not the bias.
 """
@@ -148,7 +150,15 @@ def no_state_reason(episodes: list[Episode], gamma: float, tolerance: float) -> 
     return (
         f"{cut}, and {needed} (gamma {gamma:g}, eval.value_horizon_tolerance={tolerance:g}). To measure anyway, "
         f"eval.value_horizon_tolerance={suggested:g} keeps at least the first state of the longest one, whose true value then "
-        f"leave out up to {suggested:g} of the discounted return beyond the cut; or {off}"
+        f"leaves out up to {suggested:g} of the discounted return beyond the cut; or {off}"
+    )
+
+
+def cut_at_time_limit(episodes: list[Episode], time_limit: int | None) -> bool:
+    """Whether every episode ran to ``time_limit`` steps and was cut there (Pendulum-v1's, always): then no state
+    kept is a consequence of the configuration, not of the run."""
+    return bool(episodes) and time_limit is not None and all(
+        not episode.terminated and len(episode) == time_limit for episode in episodes
     )
 
 

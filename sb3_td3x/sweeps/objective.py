@@ -30,6 +30,7 @@ import optuna
 from omegaconf import DictConfig
 
 from sb3_td3x.common.redaction import redact
+from sb3_td3x.experiment.schemas import compose_config
 from sb3_td3x.sweeps.errors import SweepSpecError
 from sb3_td3x.sweeps.spec import SweepSpec, override_value
 
@@ -48,16 +49,6 @@ RESUMABLE = "resumable"
 
 #: User attributes of a trial of several seeds that its run writes: each seed's latest evaluation and its step.
 SEED_VALUES, SEED_VALUES_STEP = "seed_values", "seed_values_step"
-
-
-def compose_config(config_dir: Path, overrides: list[str]) -> DictConfig:
-    """Compose ``conf/config.yaml`` with ``overrides``, as ``python run.py <overrides>`` does."""
-    from hydra import compose, initialize_config_dir
-
-    import sb3_td3x.experiment.schemas  # noqa: F401  (registers the schemas and resolvers that conf/ uses)
-
-    with initialize_config_dir(config_dir=str(config_dir.resolve()), version_base="1.3", job_name="sweep"):
-        return compose("config", overrides=overrides)
 
 
 def seed_overrides(seeds: list[int], run_dir: Path, resume: bool = False) -> list[str]:
@@ -106,7 +97,7 @@ def check_composes(spec: SweepSpec, config_dir: Path, extra_overrides: list[str]
     example = [p.override(p.example_value()) for p in spec.params]
     own = seed_overrides(spec.trial_seeds(0), Path("/tmp/sweep-check"))
     try:
-        cfg = compose_config(config_dir, fixed + example + TRIAL_DEFAULTS + own)
+        cfg = compose_config(fixed + example + TRIAL_DEFAULTS + own, config_dir)
         check_config(cfg)
     except (HydraException, OmegaConfBaseException, ConfigError) as err:
         message = str(err).strip().splitlines()
@@ -201,7 +192,7 @@ class TrialObjective:
 
         seed_options = {} if len(seeds) == 1 else {"seeds_aggregate": self.spec.seeds_aggregate, "report_seeds": report_seeds}
         try:
-            cfg = compose_config(self.config_dir, overrides)
+            cfg = compose_config(overrides, self.config_dir)
             if cfg.torch_threads is None:  # workers may share a machine: one thread each unless the spec says
                 cfg.torch_threads = 1
             final_return = self.train(cfg, report, **seed_options)

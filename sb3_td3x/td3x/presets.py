@@ -1,6 +1,7 @@
 """DDPG and the paper's ablations (Fujimoto et al. 2018, Table 2) as TD3X presets: explicit switches, no magic values.
 
-Each preset is a dict of ``TD3X`` keyword arguments; ``TD3X("MlpPolicy", env, **PRESETS["td3_no_cdq"])``.
+Each preset is a dict of ``TD3X`` keyword arguments; ``TD3X("MlpPolicy", env, **PRESETS["td3_no_cdq"])``. The
+experiment configs ``conf/algo/<name>.yaml`` take their switches from here.
 """
 
 from __future__ import annotations

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import inspect
+import shutil
 import warnings
 from pathlib import Path
 
@@ -19,7 +21,7 @@ from sb3_td3x.experiment.envs import make_eval_env, make_train_env
 from sb3_td3x.experiment.errors import ConfigError
 from sb3_td3x.experiment.loggers import build_logger, wandb_mode
 from sb3_td3x.common.redaction import MASK
-from sb3_td3x.experiment.schemas import CONF_DIR, check_config, compose_config, public_config
+from sb3_td3x.experiment.schemas import AlgoConfig, CONF_DIR, check_config, compose_config, constructor_fields, public_config
 
 
 def options(group: str) -> list[str]:
@@ -69,13 +71,13 @@ def test_sb3_td3_config_runs_the_td3_settings_and_refuses_td3x_only_switches():
     td3 = algorithm_kwargs(compose_config(["algo=td3"]).algo, n_actions=1)
     sb3 = algorithm_kwargs(compose_config(["algo=sb3_td3"]).algo, n_actions=1)
     td3_only = {"critic_learning_rate", "target_policy_smoothing", "clipped_double_q", "bf16", "compile_update",
-                "cuda_graph"}
+                "cuda_graph", "mlp_update", "flush_denormals"}
     assert set(td3) - set(sb3) == td3_only
     for key in sb3:
         if key != "action_noise":
             assert sb3[key] == td3[key], key
     for override in ("algo.target_policy_smoothing=false", "algo.clipped_double_q=false", "algo.critic_learning_rate=3e-4",
-                     "algo.compile_update=true"):
+                     "algo.compile_update=true", "algo.mlp_update=false"):
         with pytest.raises(ConfigError, match="SB3's TD3 .* has no such option"):
             algorithm_kwargs(compose_config(["algo=sb3_td3", override]).algo, n_actions=1)
 
@@ -96,15 +98,40 @@ def test_the_opt_in_accelerations_are_config_switches():
     env.close()
 
 
-@pytest.mark.parametrize("name", [name for name in options("algo") if name in PRESETS])
-def test_algo_configs_agree_with_the_presets_of_the_package(name):
-    """conf/algo/<name>.yaml spells out sb3_td3x.PRESETS[name]; this catches the two drifting apart."""
-    kwargs = algorithm_kwargs(compose_config([f"algo={name}"]).algo, n_actions=1)
-    for key, value in PRESETS[name].items():
-        if key == "policy_kwargs":
-            assert value.items() <= kwargs["policy_kwargs"].items(), name
-        else:
-            assert kwargs[key] == value, (name, key)
+@pytest.mark.parametrize("name", options("algo"))
+def test_no_algo_config_restates_a_value_it_inherits(name, tmp_path):
+    """Each line of conf/algo/<name>.yaml changes the composed config: composed without that line (a copy of conf/),
+    the value differs. TD3X's defaults come from the schema, the presets' switches from sb3_td3x.PRESETS, and td3.yaml
+    says only the paper's values that neither has."""
+    own = OmegaConf.load(CONF_DIR / "algo" / f"{name}.yaml")
+    composed = OmegaConf.to_container(compose_config([f"algo={name}"]).algo, resolve=False)
+    restated = []
+    for key in [key for key in own if key != "defaults"]:
+        conf_dir = tmp_path / key
+        shutil.copytree(CONF_DIR, conf_dir)
+        without = OmegaConf.load(conf_dir / "algo" / f"{name}.yaml")
+        del without[key]
+        OmegaConf.save(without, conf_dir / "algo" / f"{name}.yaml")
+        inherited = OmegaConf.to_container(compose_config([f"algo={name}"], conf_dir).algo, resolve=False)
+        if inherited[key] == composed[key]:
+            restated.append(f"{key}: {composed[key]}")
+    assert not restated, f"conf/algo/{name}.yaml restates what it inherits: {', '.join(restated)}"
+
+
+def test_the_schema_has_td3x_defaults_and_the_preset_configs_are_the_presets():
+    """The algo schema is read from TD3X's signature (every argument with a plain type, mlp_update and
+    flush_denormals included), and each preset's config is td3.yaml with exactly sb3_td3x.PRESETS's switches."""
+    schema = OmegaConf.structured(AlgoConfig)
+    parameters = inspect.signature(TD3X.__init__).parameters
+    assert constructor_fields().keys() >= {"mlp_update", "flush_denormals", "critic_learning_rate", "n_steps", "bf16"}
+    for name in constructor_fields():
+        assert schema[name] == parameters[name].default, name
+    td3 = OmegaConf.to_container(compose_config(["algo=td3"]).algo, resolve=False)
+    assert set(PRESETS) <= set(options("algo"))
+    for name, kwargs in PRESETS.items():
+        algo = OmegaConf.to_container(compose_config([f"algo={name}"]).algo, resolve=False)
+        switches = {key: value for key, value in algo.items() if td3[key] != value and key not in ("name", "_target_")}
+        assert switches == {**{k: v for k, v in kwargs.items() if k != "policy_kwargs"}, **kwargs.get("policy_kwargs", {})}
 
 
 @pytest.mark.parametrize("name", options("env"))

@@ -266,7 +266,7 @@ BAD_INPUTS = {
     "logger.log_interval=0": "logger.log_interval=0 must be >= 1",
     "algo.policy=CnnPolicy": "algo.policy=CnnPolicy needs image observations",
     "+env.kwargs.foo=1": "unexpected keyword argument 'foo'",
-    "seeds=[]": "seeds=[] lists no seed",
+    "seeds=[]": "seeds=[] must list distinct seeds",
     "algo.taau=0.1": "Key 'taau' not in 'AlgoConfig'",
     "run_dir=<a file>": "is a file, not a folder",
 }

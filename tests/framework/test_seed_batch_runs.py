@@ -15,7 +15,8 @@ import pytest
 from omegaconf import OmegaConf
 
 from sb3_td3x.experiment.checkpoints import META_FILE
-from sb3_td3x.experiment.cli import first_seed_override, seed_folders
+from sb3_td3x.experiment.cli import seed_folders
+from sb3_td3x.experiment.schemas import compose_config
 
 REPO = Path(__file__).resolve().parents[2]
 # Pendulum-v1, 600 steps, training from step 150, evaluated every 150 steps on 2 episodes. Short on purpose: the
@@ -111,8 +112,9 @@ def test_seed_folders_are_named_as_lone_runs():
         "runs/hopper/td3/seed2/2026-01-01_00-00-00",
     ]
     assert seed_folders(Path("/tmp/mine"), 0, [0, 1]) == ["/tmp/mine/seed0", "/tmp/mine/seed1"]
-    assert first_seed_override(["seeds=[3,4]"]) == ["seeds=[3,4]", "seed=3"]
-    assert first_seed_override(["seeds=[3,4]", "seed=4"]) == ["seeds=[3,4]", "seed=4"]
+    # seed is the first of seeds unless given, so Hydra makes the first seed's folder and the others are named alike
+    assert compose_config(["seeds=[3,4]"]).seed == 3 and compose_config(["seeds=[3,4]", "seed=4"]).seed == 4
+    assert compose_config([]).seed == 0 and "seed3" in compose_config(["seeds=[3,4]"]).run_dir
 
 
 def test_bad_seeds_are_refused_with_a_message():

@@ -95,8 +95,8 @@ def test_sweep_prunes_persists_and_grows(tmp_path, capsys):
     best_overrides = (study_dir / "best_overrides.txt").read_text().split()
     assert f"seed={best.number}" in best_overrides and not any(o.startswith("run_dir=") for o in best_overrides)
     for cfg in (
-        compose_config(DEFAULT_CONFIG_DIR, best_overrides),
-        compose_config(DEFAULT_CONFIG_DIR, [f"hydra.searchpath=[file://{study_dir}]", "+tuned=best"]),
+        compose_config(best_overrides, DEFAULT_CONFIG_DIR),
+        compose_config([f"hydra.searchpath=[file://{study_dir}]", "+tuned=best"], DEFAULT_CONFIG_DIR),
     ):
         assert cfg.seed == best.number and cfg.total_timesteps == 600 and cfg.env.id == "Pendulum-v1"
         assert cfg.algo.learning_rate == pytest.approx(best.params["algo.learning_rate"])

@@ -214,7 +214,7 @@ def test_a_sweep_of_two_seeds_per_trial_is_scored_by_their_mean(tmp_path):
     assert f"mean of 2 seeds: 10 {finals[10]:.2f}, 11 {finals[11]:.2f}" in files.summary
     best_overrides = files.best_overrides.read_text().split()
     assert "seeds=[10,11]" in best_overrides and "seed=10" in best_overrides
-    assert list(compose_config(DEFAULT_CONFIG_DIR, best_overrides).seeds) == [10, 11]
+    assert list(compose_config(best_overrides, DEFAULT_CONFIG_DIR).seeds) == [10, 11]
     assert yaml.safe_load((study_dir / "tuned" / "best.yaml").read_text())["seeds"] == [10, 11]
 
 

@@ -61,7 +61,7 @@ def test_every_sweep_file_loads_and_composes_with_conf(path):
     }
     for k in range(max(len(v) for v in values.values())):
         overrides = [p.override(values[p.path][k % len(values[p.path])]) for p in spec.params]
-        cfg = compose_config(DEFAULT_CONFIG_DIR, spec.overrides + overrides + ["run_dir=/tmp/x"])
+        cfg = compose_config(spec.overrides + overrides + ["run_dir=/tmp/x"], DEFAULT_CONFIG_DIR)
         check_config(cfg)
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import json
+import logging
 import math
 
 import gymnasium as gym
@@ -12,6 +13,7 @@ import numpy as np
 import pytest
 import torch as th
 from gymnasium import spaces
+from gymnasium.envs.registration import EnvSpec
 from stable_baselines3 import TD3
 from stable_baselines3.common.logger import Logger
 from stable_baselines3.common.monitor import Monitor
@@ -20,10 +22,12 @@ from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 from stable_baselines3.td3.policies import TD3Policy
 
 from sb3_td3x import TD3X
+from sb3_td3x.experiment import callbacks
 from sb3_td3x.experiment.callbacks import PeriodicEvaluation
 from sb3_td3x.experiment.value_bias import (
     VALUE_FIELDS,
     Episode,
+    cut_at_time_limit,
     discounted_returns,
     kept_states,
     measure_value_bias,
@@ -115,7 +119,9 @@ class TwoEpisodes(gym.Env):
 
 
 def make_env(first: int = 0) -> gym.Env:
-    return Monitor(gym.wrappers.TimeLimit(TwoEpisodes(first), max_episode_steps=4))
+    env = TwoEpisodes(first)
+    env.spec = EnvSpec("TwoEpisodes-v0")  # TimeLimit's spec then says max_episode_steps=4, as gym.make's do
+    return Monitor(gym.wrappers.TimeLimit(env, max_episode_steps=4))
 
 
 def hand_made_episodes() -> list[Episode]:
@@ -232,6 +238,47 @@ def test_no_state_to_measure_is_nan_not_zero(tmp_path):
     (row,) = read_csv(tmp_path / "evaluations.csv")
     assert row["value_estimate"] == "nan" and row["value_states"] == "0"
     assert json.loads((tmp_path / "evaluations.json").read_text())[0]["value_estimate"] is None  # strict JSON
+
+
+@pytest.mark.parametrize("time_limit, level", [(4, logging.INFO), (5, logging.WARNING), (None, logging.WARNING)])
+def test_no_state_is_info_only_when_every_episode_ran_to_its_time_limit(tmp_path, caplog, time_limit, level):
+    """Episodes that all ran to the env's time limit (4 steps here, 200 on Pendulum-v1, the README's first run) leave
+    no state by the configuration: said once at INFO. Cut before it, or with no known limit: a WARNING."""
+    callback = evaluation(tmp_path, make_model(), value_horizon_tolerance=0.0)
+    callback.eval_env = DummyVecEnv([lambda: make_env(first=1)])  # the truncated episode only, cut at 4 steps
+    callback.n_episodes = 1
+    assert callback._time_limit() == 4  # read from the env
+    callback._time_limit = lambda: time_limit  # type: ignore[method-assign]
+    with caplog.at_level(logging.INFO, logger="sb3_td3x"):
+        callback.evaluate()
+        callback.evaluate()
+    said = [record for record in caplog.records if "Value measurement" in record.getMessage()]
+    assert [record.levelno for record in said] == [level] and "time limit" in said[0].getMessage()
+
+
+def test_a_nan_with_states_kept_is_a_warning(tmp_path, caplog, monkeypatch):
+    """A NaN that the configuration does not explain (the normalised bias of returns that cancel) stays a WARNING,
+    also after the INFO line of an evaluation without states."""
+    nan, reasons = math.nan, iter(["no state", "the mean true value 0 is about 0"])
+    outcomes = iter([{key: nan for key in VALUE_FIELDS[:4]} | {"value_states": 0},
+                     {key: 1.0 for key in VALUE_FIELDS[:3]} | {"normalized_bias": nan, "value_states": 6}])
+    monkeypatch.setattr(callbacks, "measure_value_bias", lambda model, episodes, tolerance: (next(outcomes), next(reasons)))
+    callback = evaluation(tmp_path, make_model(), value_horizon_tolerance=TOLERANCE)
+    callback.eval_env = DummyVecEnv([lambda: make_env(first=1)])  # episodes cut at their time limit
+    callback.n_episodes = 1
+    with caplog.at_level(logging.INFO, logger="sb3_td3x"):
+        callback.evaluate()
+        callback.evaluate()
+    said = [record for record in caplog.records if "Value measurement" in record.getMessage()]
+    assert [record.levelno for record in said] == [logging.INFO, logging.WARNING]
+    assert "about 0" in said[1].getMessage()
+
+
+def test_cut_at_time_limit():
+    terminated, truncated = hand_made_episodes()  # 3 steps, terminated; 4 steps, cut
+    assert cut_at_time_limit([truncated, truncated], 4)
+    assert not cut_at_time_limit([truncated], 5) and not cut_at_time_limit([truncated], None)
+    assert not cut_at_time_limit([truncated, terminated], 4) and not cut_at_time_limit([], 4)
 
 
 def test_no_state_says_which_tolerance_would_keep_one():
