@@ -1,10 +1,13 @@
-"""Throughput of TD3X against SB3's TD3: same env, same hyperparameters, one process, chunks alternated A B A B.
+"""Throughput of TD3X against SB3's TD3 and SBX's (JAX) TD3: same env, same hyperparameters, one process, chunks
+alternated A B C A B C. SBX runs when it is installed (``pip install -e ".[peers]"``; ``--no-sbx`` leaves it out).
 
     python benchmarks/throughput.py                          # Ant-v5 and HalfCheetah-v5, defaults, fp32
+    python benchmarks/throughput.py --env Hopper-v5 --batch-size 100 --threads 1   # the paper's batch, one thread
     python benchmarks/throughput.py --env Ant-v5 --td3x bf16=true
     python benchmarks/throughput.py --json docs/assets/bench.json
 
-Prints end-to-end environment steps/s of each (collection and training), the median ratio over chunks, the time per
+Prints end-to-end environment steps/s of each (collection and training) and the cores each used (the process's CPU
+seconds per second of the chunk), the median ratio over chunks, the time per
 gradient step, the achieved GFLOP/s of the update (FLOPs counted by torch's FlopCounterMode) against the machine's
 measured matmul peak, and the replay buffer's bytes per transition. Not part of the test suite.
 
@@ -66,18 +69,35 @@ def matmul_peak_gflops(dtype: th.dtype = th.float32, n: int = 2048, reps: int = 
 
 
 def make_model(algo: type, env_id: str, seed: int, extra: dict) -> TD3:
+    """``algo`` on ``env_id`` with the benchmark's settings: 1000 random steps, N(0, 0.1) exploration; the learning
+    rate (1e-3) and networks (400-300) written out, since SBX's defaults differ from SB3's."""
     env = gym.make(env_id)
     action_dim = env.action_space.shape[0]
+    kwargs = {"learning_rate": 1e-3, "policy_kwargs": {"net_arch": [400, 300]}, **extra}
     model = algo(
         "MlpPolicy",
         env,
         learning_starts=1_000,
         action_noise=NormalActionNoise(np.zeros(action_dim), 0.1 * np.ones(action_dim)),
         seed=seed,
-        **extra,
+        **kwargs,
     )
     model.set_logger(configure(None, []))
     return model
+
+
+def sbx_td3(threads: int) -> type | None:
+    """SBX's (JAX) TD3 when ``sbx-rl`` is installed (``pip install -e ".[peers]"``), else None. XLA's CPU thread
+    pools are sized when JAX starts, so one thread is asked for before the import."""
+    if threads == 1:
+        os.environ["XLA_FLAGS"] = (
+            os.environ.get("XLA_FLAGS", "") + " --xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
+        ).strip()
+    try:
+        from sbx import TD3 as SbxTD3
+    except ImportError:
+        return None
+    return SbxTD3
 
 
 def gradient_step_time(model: TD3, steps: int) -> float:
@@ -372,30 +392,42 @@ def bytes_per_transition(model: TD3) -> float:
     return total / (buffer.buffer_size * buffer.n_envs)
 
 
-def bench_env(env_id: str, args: argparse.Namespace, td3x_kwargs: dict) -> dict:
-    sb3 = make_model(TD3, env_id, args.seed, {"buffer_size": args.buffer_size})
-    td3x = make_model(TD3X, env_id, args.seed, {"buffer_size": args.buffer_size, **td3x_kwargs})
+def bench_env(env_id: str, args: argparse.Namespace, td3x_kwargs: dict, peer: type | None = None) -> dict:
+    common = {"buffer_size": args.buffer_size, "batch_size": args.batch_size}
+    sb3 = make_model(TD3, env_id, args.seed, common)
+    td3x = make_model(TD3X, env_id, args.seed, {**common, **td3x_kwargs})
     models = {"sb3": sb3, "td3x": td3x}
+    if peer is not None:
+        models["sbx"] = make_model(peer, env_id, args.seed, common)
     # Warm-up: fill past learning_starts and let compilation/graph capture happen outside the timed chunks.
     for model in models.values():
         model.learn(args.warmup, reset_num_timesteps=True)
     replay = InSequenceReplay(td3x, env_id, args.seed) if InSequenceReplay.applies(td3x) else None
     rates: dict[str, list[float]] = {name: [] for name in models}
+    cores: dict[str, list[float]] = {name: [] for name in models}  # CPU seconds of the process per second
     replayed: dict[str, list[float]] = {"kernels": [], "products": []}
     for _ in range(args.chunks):
-        for name, model in models.items():  # A B A B ...
-            start = time.perf_counter()
+        for name, model in models.items():  # A B C A B C ...
+            start, cpu = time.perf_counter(), time.process_time()
             model.learn(args.chunk_steps, reset_num_timesteps=False)
-            rates[name].append(args.chunk_steps / (time.perf_counter() - start))
+            wall = time.perf_counter() - start
+            rates[name].append(args.chunk_steps / wall)
+            cores[name].append((time.process_time() - cpu) / wall)
         if replay is not None:  # the in-sequence floors, between the chunks so that they see the same host
             for which in replayed:
                 replayed[which].append(replay.time(which, rounds=max(1, args.chunk_steps // (10 * replay.delay))))
     ratios = [b / a for a, b in zip(rates["sb3"], rates["td3x"])]
-    result = {"env": env_id, "steps_per_s": {k: statistics.median(v) for k, v in rates.items()}, "chunks": rates,
-              "median_ratio": statistics.median(ratios), "ratios": ratios}
+    result = {"env": env_id, "batch_size": args.batch_size, "steps_per_s": {k: statistics.median(v) for k, v in rates.items()},
+              "chunks": rates, "median_ratio": statistics.median(ratios), "ratios": ratios,
+              "cores_used": {k: statistics.median(v) for k, v in cores.items()}}
+    if "sbx" in models:
+        result["ratio_to_sb3"] = {name: statistics.median([b / a for a, b in zip(rates["sb3"], rates[name])]) for name in models}
+        result["td3x_over_sbx"] = statistics.median([a / b for a, b in zip(rates["td3x"], rates["sbx"])])
+        # Steps per CPU-second: what each costs when cores are the limit (many runs side by side)
+        result["steps_per_cpu_s"] = {name: result["steps_per_s"][name] / result["cores_used"][name] for name in models}
     peak = matmul_peak_gflops()
     env_ms = bare_env_step_ms(env_id, seed=args.seed)
-    for name, model in models.items():
+    for name, model in ((name, models[name]) for name in ("sb3", "td3x")):  # torch's counters: not for the JAX peer
         step_s = gradient_step_time(model, args.grad_steps)
         flops = flops_per_gradient_step(model)
         result[name] = {
@@ -435,8 +467,8 @@ def check_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -
     if malformed:
         parser.error(f"--td3x takes KEY=VALUE pairs, such as bf16=true; got {' '.join(malformed)}")
     td3x_kwargs = {k: parse_value(v) for k, v in (item.split("=", 1) for item in args.td3x)}
-    fixed = {"buffer_size": "--buffer-size", "seed": "--seed", "learning_starts": "1000 for both models",
-             "action_noise": "N(0, 0.1) for both models"}
+    fixed = {"buffer_size": "--buffer-size", "batch_size": "--batch-size", "seed": "--seed",
+             "learning_starts": "1000 for both models", "action_noise": "N(0, 0.1) for both models"}
     known = set(inspect.signature(TD3X.__init__).parameters) - {"self", "policy", "env", "_init_setup_model"}
     unknown = sorted(set(td3x_kwargs) - known)
     if unknown:
@@ -446,7 +478,7 @@ def check_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -
     for env_id in args.env:
         if env_id not in gym.registry:
             parser.error(f"--env: no gymnasium environment {env_id!r} (for example Ant-v5, HalfCheetah-v5, Hopper-v5)")
-    for name in ("chunks", "chunk_steps", "grad_steps", "buffer_size", "threads"):
+    for name in ("chunks", "chunk_steps", "grad_steps", "buffer_size", "batch_size", "threads"):
         if getattr(args, name) < 1:
             parser.error(f"--{name.replace('_', '-')} must be at least 1 (got {getattr(args, name)})")
     if args.warmup < 1_000 + 1:
@@ -462,6 +494,10 @@ def main() -> None:
     parser.add_argument("--warmup", type=int, default=1_500)
     parser.add_argument("--grad-steps", type=int, default=200)
     parser.add_argument("--buffer-size", type=int, default=1_000_000)
+    parser.add_argument("--batch-size", type=int, default=256, help="256 is SB3's default, 100 the paper's")
+    parser.add_argument(
+        "--no-sbx", action="store_true", help="leave out SBX's TD3 (run beside the others when sbx-rl is installed)"
+    )
     parser.add_argument("--threads", type=int, default=os.cpu_count())
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--td3x", nargs="*", default=[], metavar="KEY=VALUE", help="extra TD3X arguments (opt-in flags)")
@@ -481,14 +517,28 @@ def main() -> None:
         "torch_threads": th.get_num_threads(),
         "torch": th.__version__,
     }
+    peer = None if args.no_sbx else sbx_td3(args.threads)
+    if peer is not None:
+        import jax
+
+        machine["jax"] = jax.__version__
     print(f"machine: {machine}\nTD3X extra arguments: {td3x_kwargs or 'none (defaults, fp32)'}")
+    if peer is None and not args.no_sbx:
+        print('SBX is not installed (pip install -e ".[peers]"): SB3 and TD3X only')
     results = []
     for env_id in args.env:
-        r = bench_env(env_id, args, td3x_kwargs)
+        r = bench_env(env_id, args, td3x_kwargs, peer)
         results.append(r)
-        print(f"\n{env_id}")
-        print(f"  end-to-end steps/s   SB3 TD3 {r['steps_per_s']['sb3']:8.1f}   TD3X {r['steps_per_s']['td3x']:8.1f}")
+        print(f"\n{env_id}, batch {args.batch_size}")
+        names = {"sb3": "SB3 TD3", "td3x": "TD3X", "sbx": "SBX TD3"}
+        print("  end-to-end steps/s  " + "   ".join(f"{names[k]} {v:8.1f}" for k, v in r["steps_per_s"].items()))
+        print("  cores used          " + "   ".join(f"{names[k]} {v:8.2f}" for k, v in r["cores_used"].items()))
         print(f"  ratio TD3X / SB3     median {r['median_ratio']:.2f}x   per chunk {[round(x, 2) for x in r['ratios']]}")
+        if "sbx" in r["steps_per_s"]:
+            print(
+                f"  ratio SBX / SB3      median {r['ratio_to_sb3']['sbx']:.2f}x;   TD3X / SBX median {r['td3x_over_sbx']:.2f}x;   "
+                "steps per CPU-second " + ", ".join(f"{names[k]} {v:.1f}" for k, v in r["steps_per_cpu_s"].items())
+            )
         for name in ("sb3", "td3x"):
             s = r[name]
             print(

@@ -109,3 +109,18 @@ def test_bad_arguments_get_a_message_not_a_traceback(throughput, monkeypatch, ca
         throughput.main()
     assert exit_info.value.code == 2
     assert message in capsys.readouterr().err
+
+
+def test_sbx_runs_with_the_same_hyperparameters_as_sb3_and_td3x(throughput):
+    """SBX's TD3 (an optional peer) is built with SB3's values, not SBX's own defaults (lr 3e-4, 256-256)."""
+    peer = throughput.sbx_td3(threads=2)
+    if peer is None:
+        pytest.skip('sbx-rl is not installed (pip install -e ".[peers]")')
+    extra = {"buffer_size": 2_000, "batch_size": 100}
+    sb3 = throughput.make_model(throughput.TD3, "Pendulum-v1", 0, extra)
+    sbx = throughput.make_model(peer, "Pendulum-v1", 0, extra)
+    for name in ("learning_rate", "batch_size", "learning_starts", "tau", "gamma", "policy_delay", "target_policy_noise",
+                 "target_noise_clip", "buffer_size", "train_freq", "gradient_steps"):
+        assert getattr(sbx, name) == getattr(sb3, name), name
+    assert sbx.policy_kwargs["net_arch"] == sb3.policy.net_arch == [400, 300]
+    assert (sbx.action_noise._sigma == sb3.action_noise._sigma).all()
