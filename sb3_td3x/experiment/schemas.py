@@ -214,7 +214,7 @@ def _if_resume(resume: str | None, when_resuming: Any, otherwise: Any) -> Any:
 
 
 def _first_seed(seeds: Any) -> int:
-    """The default ``seed``: 0, or the first of ``seeds=[...]``, whose folder Hydra then makes (cli.seed_folders
+    """The default ``seed``: 0, or the first of ``seeds=[...]``, whose folder Hydra then makes (checkpoints.seed_folders
     names the others alike)."""
     return int(seeds[0]) if seeds else 0
 

@@ -54,12 +54,12 @@ SEED_VALUES, SEED_VALUES_STEP = "seed_values", "seed_values_step"
 def seed_overrides(seeds: list[int], run_dir: Path, resume: bool = False) -> list[str]:
     """A trial's own overrides: its seed (and ``seeds=[...]`` for several), its folder, and ``resume`` for the copy
     of an interrupted trial (several seeds resume from the first seed's folder)."""
-    from sb3_td3x.experiment.checkpoints import seed_run_dir
+    from sb3_td3x.experiment.checkpoints import seed_folders
 
     if len(seeds) == 1:
         return [f"seed={seeds[0]}", f"run_dir={run_dir}"] + ([f"resume={run_dir}"] if resume else [])
     own = [f"seed={seeds[0]}", f"seeds={override_value(seeds)}", f"run_dir={run_dir}"]
-    return own + ([f"resume={seed_run_dir(run_dir, seeds[0])}"] if resume else [])
+    return own + ([f"resume={seed_folders(run_dir, seeds[:1])[0]}"] if resume else [])
 
 
 def override_key(override: str) -> str:
@@ -228,7 +228,7 @@ class TrialObjective:
         Ctrl-C/SIGTERM and left a complete checkpoint (of its first seed, for several). A copy of a trial failed by
         the heartbeat starts afresh in its own folder instead, since its first worker may still be writing to the
         old one."""
-        from sb3_td3x.experiment.checkpoints import resume_checkpoint, seed_run_dir
+        from sb3_td3x.experiment.checkpoints import resume_checkpoint, seed_folders
         from sb3_td3x.experiment.errors import ConfigError
 
         if not trial.user_attrs.get(RESUMABLE):
@@ -236,7 +236,7 @@ class TrialObjective:
         run_dir = Path(trial.user_attrs["run_dir"])
         seeds = cls._recorded_seeds(trial)
         try:
-            resume_checkpoint(run_dir if len(seeds) == 1 else seed_run_dir(run_dir, seeds[0]))
+            resume_checkpoint(run_dir if len(seeds) == 1 else seed_folders(run_dir, seeds[:1])[0])
         except ConfigError:  # stopped before its first checkpoint: start again
             return None
         return run_dir
