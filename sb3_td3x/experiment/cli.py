@@ -23,7 +23,7 @@ from sb3_td3x.experiment.errors import ConfigError, RunFilesNotWritten, Training
 from sb3_td3x.experiment.lock import RunFolderLock
 from sb3_td3x.experiment.resume import check_resume, saved_config
 from sb3_td3x.experiment.runner import CONFIG_FILE, run_experiment
-from sb3_td3x.experiment.schemas import ExperimentConfig, public_config
+from sb3_td3x.experiment.schemas import ExperimentConfig, public_config, whole_float_problems
 
 # Config groups of conf/config.yaml; a resumed run keeps the choices it was started with.
 CONFIG_GROUPS = ("algo", "env", "eval", "logger", "video", "debug")
@@ -42,6 +42,9 @@ def check_command_line(args: list[str], conf_dir: Path) -> None:
     write its records into the run folder before the task could refuse it.
     """
     try:
+        problems = whole_float_problems(args)
+        if problems:
+            raise ConfigError("; ".join(problems) + ".")
         plain = []  # the overrides to compose, a sweep's first value standing for the sweep
         for arg in args:
             if re.match(r"^[+~]?[A-Za-z_][\w.]*=", arg) is None:
