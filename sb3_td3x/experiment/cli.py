@@ -160,8 +160,7 @@ def main(cfg: DictConfig) -> float:
                 cfg.seed_run_dirs = [str(d) for d in seed_folders(hydra_cfg.runtime.output_dir, cfg.seeds, cfg.seed)]
             cfg.run_dir = hydra_cfg.runtime.output_dir
         if cfg.torch_threads is None and hydra_cfg.mode == RunMode.MULTIRUN:
-            # Jobs side by side share the cores; a single run keeps them all (1.6x faster than one thread for
-            # TD3's 400-300 networks on 2 cores, docs/experiments.md).
+            # Jobs side by side share the cores; a single run keeps them all (docs/experiments.md).
             cfg.torch_threads = threads_per_job(hydra_cfg.launcher.get("n_jobs"), available_cores())
         return run_experiment(cfg)
     except (ConfigError, OmegaConfBaseException) as error:
