@@ -92,8 +92,11 @@ def main(argv: list[str] | None = None) -> int:
     except SweepError as err:
         print(redact(f"error: {err}"), file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print("Interrupted outside a trial; the study is consistent. Run the same command to continue.", file=sys.stderr)
+    except KeyboardInterrupt:  # before the worker loop, which holds signals (sb3_td3x.sweeps.signals)
+        print(
+            "Interrupted before this worker started a trial: no trial of it is running. Run the same command to continue.",
+            file=sys.stderr,
+        )
         return 130
 
 
@@ -129,7 +132,7 @@ def _run(args: argparse.Namespace) -> int:
     from sb3_td3x.sweeps.results import write_results
     from sb3_td3x.sweeps.spec import load_sweep
     from sb3_td3x.sweeps.storage import default_storage_url, open_storage
-    from sb3_td3x.sweeps.worker import SweepInterrupted, open_study, run_worker
+    from sb3_td3x.sweeps.worker import SweepInterrupted, check_heartbeat_settings, open_study, run_worker
 
     check_arguments(args)
     spec = load_sweep(args.sweep_file)
@@ -170,6 +173,7 @@ def _run(args: argparse.Namespace) -> int:
         finish(study)
         return 0
 
+    check_heartbeat_settings(study, study_storage)  # before anything is said about the study: a refusal comes alone
     logger.info(
         "study %s in %s: %d trials wanted, %d there", study_name, study_storage.display_url, n_trials, len(study.trials)
     )
@@ -197,11 +201,16 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def _launch(args: argparse.Namespace, storage_url: str, study_dir: Path, study_name: str, config_dir: Path) -> int:
+    import optuna
+
     from sb3_td3x.sweeps.launch import load_launcher, submit_workers
     from sb3_td3x.sweeps.storage import open_storage
+    from sb3_td3x.sweeps.worker import check_heartbeat_settings
 
-    # An unreachable storage fails here, once, rather than in every job.
-    open_storage(storage_url, study_name, args.heartbeat_interval, args.grace_period, args.retry_stale)
+    # An unreachable storage or heartbeat settings the study refuses fail here, once, rather than in every job.
+    study_storage = open_storage(storage_url, study_name, args.heartbeat_interval, args.grace_period, args.retry_stale)
+    if study_name in optuna.get_all_study_names(study_storage.storage):
+        check_heartbeat_settings(optuna.load_study(study_name=study_name, storage=study_storage.storage), study_storage, False)
     cluster, executor_params = load_launcher(args.launcher, study_dir / "jobs", f"sweep-{study_name}")
     if storage_url.startswith("sqlite") and cluster == "slurm":
         logger.warning(
