@@ -5,7 +5,10 @@ trial RUNNING with nobody to finish it. So the worker holds both signals (:class
 is remembered, and the worker acts on it at the next safe point, after the trial is created or its result is
 written. Only while the trial runs (:meth:`HeldSignals.live`) does a signal act at once: during training the
 runner turns the first one into a checkpoint and a clean stop (``StopOnSignal``), and anywhere else in the trial
-it raises :class:`KeyboardInterrupt`, which the worker records as an interrupted trial.
+it raises :class:`SignalInterrupt` (a :class:`KeyboardInterrupt`), which the worker records as an interrupted trial.
+
+A signal held while the worker waits for the storage's budget lock acts once the lock is free; the lock is held only
+for the moment another worker creates a trial.
 
 Signals can only be handled in the main thread; elsewhere this does nothing.
 """
@@ -19,6 +22,14 @@ from collections.abc import Iterator
 from typing import Any
 
 SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
+class SignalInterrupt(KeyboardInterrupt):
+    """A signal that arrived while a trial ran; ``signal_name`` is ``"SIGINT"`` or ``"SIGTERM"``."""
+
+    def __init__(self, signal_name: str) -> None:
+        self.signal_name = signal_name
+        super().__init__(signal_name)
 
 
 class HeldSignals:
@@ -46,7 +57,7 @@ class HeldSignals:
 
     @contextlib.contextmanager
     def live(self) -> Iterator[None]:
-        """Let signals act while the block runs: each is remembered and raises :class:`KeyboardInterrupt`."""
+        """Let signals act while the block runs: each is remembered and raises :class:`SignalInterrupt`."""
         self._install(self._interrupt)
         try:
             yield
@@ -63,4 +74,4 @@ class HeldSignals:
 
     def _interrupt(self, signum: int, frame: Any) -> None:
         self._remember(signum, frame)
-        raise KeyboardInterrupt
+        raise SignalInterrupt(signal.Signals(signum).name)
