@@ -210,7 +210,8 @@ def _launch(args: argparse.Namespace, storage_url: str, study_dir: Path, study_n
     # An unreachable storage or heartbeat settings the study refuses fail here, once, rather than in every job.
     study_storage = open_storage(storage_url, study_name, args.heartbeat_interval, args.grace_period, args.retry_stale)
     if study_name in optuna.get_all_study_names(study_storage.storage):
-        check_heartbeat_settings(optuna.load_study(study_name=study_name, storage=study_storage.storage), study_storage, False)
+        study = optuna.load_study(study_name=study_name, storage=study_storage.storage)
+        check_heartbeat_settings(study, study_storage, record=False)
     cluster, executor_params = load_launcher(args.launcher, study_dir / "jobs", f"sweep-{study_name}")
     if storage_url.startswith("sqlite") and cluster == "slurm":
         logger.warning(
