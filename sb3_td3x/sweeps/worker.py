@@ -296,6 +296,11 @@ def _run_trial(
         signals.hold()
     if result is None:
         return TrialResult(TrialState.FAIL, reason=f"interrupted by {signals.received or 'SIGINT'}", interrupted=True)
+    if signals.received and result.state == TrialState.FAIL and not (result.interrupted or result.finished_elsewhere):
+        # A library that caught the interrupt and raised its own error (Hydra's composition, half-built objects):
+        # the signal ended the trial, so it is queued again rather than counted as a crash.
+        reason = f"interrupted by {signals.received} ({result.reason})"
+        return TrialResult(TrialState.FAIL, reason=reason, interrupted=True, step=result.step)
     return result
 
 
