@@ -93,6 +93,8 @@ def open_study(spec: SweepSpec, study_storage: StudyStorage, study_name: str, fi
     fixed_overrides = redact(fixed_overrides)  # the study's records hold no secret
     recorded = study.user_attrs.get("search_space")
     if recorded is None:
+        if study_storage.heartbeat_settings() is not None:  # what decides staleness, shared by every worker
+            study.set_user_attr(HEARTBEAT_ATTR, study_storage.heartbeat_settings())
         study.set_user_attr("search_space", space)
         study.set_user_attr("metric", spec.metric)
         study.set_user_attr("sweep_file", redact(str(spec.source)))
@@ -138,8 +140,9 @@ def claim_trial(study: optuna.Study, spec: SweepSpec, study_storage: StudyStorag
 
 
 def check_heartbeat_settings(study: optuna.Study, study_storage: StudyStorage, record: bool = True) -> None:
-    """Record this worker's heartbeat settings on a study that has none yet (``record``), or refuse them when they
-    differ from the study's: a worker with a shorter grace period would fail the healthy trials of the others."""
+    """Refuse this worker's heartbeat settings when they differ from the study's (recorded by :func:`open_study`):
+    a worker with a shorter grace period would fail the healthy trials of the others. A study made before the
+    settings were recorded gets this worker's (``record``)."""
     mine = study_storage.heartbeat_settings()
     if mine is None:  # no heartbeat (journal storage): nothing can go stale
         return
@@ -296,6 +299,11 @@ def _run_trial(
         signals.hold()
     if result is None:
         return TrialResult(TrialState.FAIL, reason=f"interrupted by {signals.received or 'SIGINT'}", interrupted=True)
+    if signals.received and result.state == TrialState.FAIL and not (result.interrupted or result.finished_elsewhere):
+        # A library that caught the interrupt and raised its own error (Hydra's composition, half-built objects):
+        # the signal ended the trial, so it is queued again rather than counted as a crash.
+        reason = f"interrupted by {signals.received} ({result.reason})"
+        return TrialResult(TrialState.FAIL, reason=reason, interrupted=True, step=result.step)
     return result
 
 

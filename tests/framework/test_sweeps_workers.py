@@ -23,7 +23,9 @@ from optuna.storages import fail_stale_trials
 from optuna.trial import TrialState
 
 from sb3_td3x.sweeps.cli import main
+from sb3_td3x.sweeps.spec import load_sweep
 from sb3_td3x.sweeps.storage import open_storage
+from sb3_td3x.sweeps.worker import claim_trial, open_study
 
 REPO = Path(__file__).resolve().parents[2]
 SMOKE = REPO / "sweeps" / "pendulum_smoke.yaml"
@@ -109,32 +111,28 @@ def test_a_worker_cut_off_past_the_grace_period_keeps_its_late_result(tmp_path):
 
 
 def test_a_worker_with_other_heartbeat_settings_is_refused(tmp_path):
-    """A worker beating every second with a 2 s grace period would mark the trial of a worker beating every 60 s
-    stale while it trains. It is refused instead (exit 2, both settings named), and the trial completes."""
+    """A worker with the default heartbeat (every 60 s, grace period 120 s) has a trial running. A worker started
+    with ``--heartbeat-interval 1 --grace-period 2`` would mark that healthy trial stale; it is refused instead
+    (exit 2, one paragraph naming both settings and how to match them), and the trial stays RUNNING."""
     out = tmp_path / "runs"
     storage = f"sqlite:///{out / STUDY / 'optuna.db'}"
-    same = ("--output-dir", str(out), "--n-trials", "1")
-    first = start_worker(*same)
-    try:
-        wait_until(lambda: rows(out, "trials") > 0, first)
-        second = start_worker(*same, "--heartbeat-interval", "1", "--grace-period", "2")
-        second_err = finish(second)
-        first_err = finish(first)
-    finally:
-        first.kill()
-    assert second.returncode == 2, second_err
-    assert "Traceback" not in second_err
-    message = second_err.strip()
+    spec = load_sweep(SMOKE)
+    first = open_storage(storage, STUDY)  # the defaults, as the first worker's command line gives them
+    study = open_study(spec, first, STUDY, spec.overrides)
+    running = claim_trial(study, spec, first, n_trials=1)  # what the first worker does before it trains
+    second = start_worker("--output-dir", str(out), "--n-trials", "1", "--heartbeat-interval", "1", "--grace-period", "2")
+    stderr = finish(second)  # it starts in more than 2 s: the trial's heartbeat is older than its grace period
+
+    assert second.returncode == 2, stderr
+    assert "Traceback" not in stderr
+    message = stderr.strip()
     assert message.startswith("error: ") and "\n" not in message, "one paragraph"
     assert "heartbeat interval of 60s and a grace period of 120s" in message
     assert "--heartbeat-interval 1 and a grace period of 2s" in message
     assert "--heartbeat-interval 60 --grace-period 120" in message, "says how to fix it"
-
-    assert first.returncode == 0, first_err
     (trial,) = trials(storage)
-    assert trial.state == TrialState.COMPLETE, "the first worker's healthy trial was left alone"
-    recorded = optuna.load_study(study_name=STUDY, storage=storage).user_attrs["heartbeat"]
-    assert recorded == {"heartbeat_interval": 60, "grace_period": 120}
+    assert trial.number == running.number and trial.state == TrialState.RUNNING, "the healthy trial was left alone"
+    assert study.user_attrs["heartbeat"] == {"heartbeat_interval": 60, "grace_period": 120}
 
 
 @pytest.mark.parametrize(
