@@ -15,7 +15,6 @@ from omegaconf import DictConfig
 from sb3_td3x.common.redaction import redact_log_records
 from sb3_td3x.experiment.cli import check_command_line
 from sb3_td3x.experiment.cli import main as run_main
-from sb3_td3x.experiment.schemas import integer_overrides
 
 CONF_DIR = Path(__file__).resolve().parent / "conf"
 
@@ -28,7 +27,4 @@ def main(cfg: DictConfig) -> float:
 if __name__ == "__main__":
     redact_log_records()  # every log line of the run, Hydra's included, with its secrets masked
     check_command_line(sys.argv[1:], CONF_DIR)
-    # total_timesteps=1e6: a whole float given to an integer field becomes an integer before Hydra reads the line
-    # (@hydra.main reads sys.argv, and the typed schema refuses 1e6 while composing, before any code of ours runs).
-    sys.argv[1:] = integer_overrides(sys.argv[1:])
     main()

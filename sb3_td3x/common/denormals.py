@@ -2,8 +2,8 @@
 
 Adam's second moment ``v <- beta2 v + (1 - beta2) g^2`` makes denormal numbers (below 1.2e-38 in fp32) out of the
 tiny gradients of rarely active ReLU units. On x86 each arithmetic operation on a denormal takes a microcode assist of
-about a hundred cycles: on Ant-v5 the critics' fused Adam step takes 0.72 ms instead of 0.12 ms. Flush-to-zero (FTZ)
-and denormals-are-zero (DAZ) make those values 0, which changes nothing that fp32 training can see (the same setting
+about a hundred cycles, enough to make Adam's step several times slower. Flush-to-zero (FTZ) and
+denormals-are-zero (DAZ) make those values 0, which changes nothing that fp32 training can see (the same setting
 is the default of XLA on CPU and of TensorFlow's thread pools).
 
 ``torch.set_flush_denormal`` only sets the floating-point control register (MXCSR) of the calling thread, and the

@@ -29,7 +29,7 @@ import shutil
 import time
 import warnings
 import zipfile
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -61,10 +61,18 @@ def checkpoint_dir(run_dir: Path, name: str) -> Path:
     return run_dir / "checkpoints" / name
 
 
-def seed_run_dir(run_dir: Path | str, seed: int) -> Path:
-    """The folder of seed ``seed`` of a batch of seeds run in ``run_dir`` (``run.py seeds=[...]`` with a
-    ``run_dir=`` of its own, a multirun job, a sweep trial)."""
-    return Path(run_dir) / f"seed{seed}"
+def seed_folders(run_dir: Path | str, seeds: Sequence[int], seed: int | None = None) -> list[Path]:
+    """The run folder of each of ``seeds`` trained together from ``run_dir``; the one function that names them.
+
+    Where ``run_dir`` has a part ``seed<seed>`` (the folder Hydra made for ``run.py seeds=[...]``, from its first
+    seed), that part names each seed instead: ``runs/hopper/td3/seed3/<date>`` for seed 3, as ``seed=3`` names it.
+    Otherwise (a ``run_dir=`` of the user's, a multirun job, a sweep trial) ``<run_dir>/seed<s>``.
+    """
+    parts = list(Path(run_dir).parts)
+    if seed is None or f"seed{seed}" not in parts:
+        return [Path(run_dir) / f"seed{s}" for s in seeds]
+    at = len(parts) - 1 - parts[::-1].index(f"seed{seed}")
+    return [Path(*parts[:at], f"seed{s}", *parts[at + 1 :]) for s in seeds]
 
 
 def _sibling(target: Path, suffix: str) -> Path:

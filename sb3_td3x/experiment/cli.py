@@ -18,12 +18,12 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from sb3_td3x.common.redaction import redact, redact_log_records
-from sb3_td3x.experiment.checkpoints import resume_checkpoint, seed_run_dir
+from sb3_td3x.experiment.checkpoints import resume_checkpoint, seed_folders
 from sb3_td3x.experiment.errors import ConfigError, RunFilesNotWritten, TrainingDiverged, TrainingInterrupted
 from sb3_td3x.experiment.lock import RunFolderLock
 from sb3_td3x.experiment.resume import check_resume, saved_config
 from sb3_td3x.experiment.runner import CONFIG_FILE, run_experiment
-from sb3_td3x.experiment.schemas import ExperimentConfig, public_config
+from sb3_td3x.experiment.schemas import ExperimentConfig, public_config, whole_float_problems
 
 # Config groups of conf/config.yaml; a resumed run keeps the choices it was started with.
 CONFIG_GROUPS = ("algo", "env", "eval", "logger", "video", "debug")
@@ -42,6 +42,9 @@ def check_command_line(args: list[str], conf_dir: Path) -> None:
     write its records into the run folder before the task could refuse it.
     """
     try:
+        problems = whole_float_problems(args)
+        if problems:
+            raise ConfigError("; ".join(problems) + ".")
         plain = []  # the overrides to compose, a sweep's first value standing for the sweep
         for arg in args:
             if re.match(r"^[+~]?[A-Za-z_][\w.]*=", arg) is None:
@@ -154,11 +157,10 @@ def main(cfg: DictConfig) -> float:
             cfg = config_for_resume(cfg, list(hydra_cfg.overrides.task))
         else:
             if cfg.seeds is not None and cfg.seed_run_dirs is None:
-                cfg.seed_run_dirs = seed_folders(Path(hydra_cfg.runtime.output_dir), cfg.seed, list(cfg.seeds))
+                cfg.seed_run_dirs = [str(d) for d in seed_folders(hydra_cfg.runtime.output_dir, cfg.seeds, cfg.seed)]
             cfg.run_dir = hydra_cfg.runtime.output_dir
         if cfg.torch_threads is None and hydra_cfg.mode == RunMode.MULTIRUN:
-            # Jobs side by side share the cores; a single run keeps them all (1.6x faster than one thread for
-            # TD3's 400-300 networks on 2 cores, docs/experiments.md).
+            # Jobs side by side share the cores; a single run keeps them all (docs/experiments.md).
             cfg.torch_threads = threads_per_job(hydra_cfg.launcher.get("n_jobs"), available_cores())
         return run_experiment(cfg)
     except (ConfigError, OmegaConfBaseException) as error:
@@ -173,18 +175,6 @@ def main(cfg: DictConfig) -> float:
         _exit(str(error), error.exit_code)
     except RunFilesNotWritten as error:
         _exit(f"Error: {_one_paragraph(error)}", EXIT_NOT_WRITTEN)
-
-
-def seed_folders(output_dir: Path, seed: int, seeds: list[int]) -> list[str]:
-    """The run folder of each seed of ``python run.py seeds=[...]``: the folder Hydra made for ``seed`` with its
-    ``seed<seed>`` part naming each seed instead (``runs/hopper/td3/seed3/<date>`` for seed 3, as ``seed=3`` would
-    make it); ``<output_dir>/seed<s>`` when the folder has no such part (a ``run_dir=`` of the user's, a multirun
-    job)."""
-    parts = list(output_dir.parts)
-    if f"seed{seed}" not in parts:
-        return [str(seed_run_dir(output_dir, s)) for s in seeds]
-    at = len(parts) - 1 - parts[::-1].index(f"seed{seed}")
-    return [str(Path(*parts[:at], f"seed{s}", *parts[at + 1 :])) for s in seeds]
 
 
 def redact_hydra_records(hydra_cfg: DictConfig) -> None:

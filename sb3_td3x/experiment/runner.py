@@ -26,8 +26,15 @@ from omegaconf import DictConfig, OmegaConf
 from sb3_td3x.common.random_streams import RandomStreams, detached_streams
 from sb3_td3x.common.redaction import redact
 from sb3_td3x.experiment.algos import algorithm_class, build_algorithm
-from sb3_td3x.experiment.callbacks import Checkpointer, DivergenceCheck, PeriodicEvaluation, ProgressBar, StopOnSignal
-from sb3_td3x.experiment.callbacks import EVALUATIONS_CSV, write_atomically
+from sb3_td3x.experiment.callbacks import (
+    EVALUATIONS_CSV,
+    Checkpointer,
+    DivergenceCheck,
+    PeriodicEvaluation,
+    ProgressBar,
+    StopOnSignal,
+    write_atomically,
+)
 from sb3_td3x.experiment.checkpoints import (
     LAST,
     META_FILE,
@@ -35,14 +42,14 @@ from sb3_td3x.experiment.checkpoints import (
     find_checkpoint,
     load_checkpoint,
     load_resumable,
-    seed_run_dir,
+    seed_folders,
 )
 from sb3_td3x.experiment.envs import make_eval_env, make_train_env
 from sb3_td3x.experiment.errors import ConfigError, RunFilesNotWritten, TrainingDiverged, TrainingInterrupted
 from sb3_td3x.experiment.lock import RunFolderLock
 from sb3_td3x.experiment.loggers import build_logger, start_wandb
-from sb3_td3x.experiment.resume import check_resume, saved_config
 from sb3_td3x.experiment.plotting import LEARNING_CURVE_PNG, plot_learning_curve, record_video
+from sb3_td3x.experiment.resume import check_resume, saved_config
 from sb3_td3x.experiment.schemas import check_config, public_config
 from sb3_td3x.experiment.statistics import STATISTICS, seed_statistic
 from sb3_td3x.td3x.seed_batch import SeedBatch, acting_as, current_seed
@@ -406,7 +413,7 @@ def seed_run_dirs(cfg: DictConfig) -> list[Path]:
         saved = OmegaConf.load(Path(cfg.resume) / CONFIG_FILE).get("seed_run_dirs")
         if saved is not None and len(saved) == len(cfg.seeds):
             return [Path(d) for d in saved]
-    return [seed_run_dir(cfg.run_dir, seed) for seed in cfg.seeds]
+    return seed_folders(cfg.run_dir, cfg.seeds)
 
 
 class _SeedReports:

@@ -214,7 +214,7 @@ def _if_resume(resume: str | None, when_resuming: Any, otherwise: Any) -> Any:
 
 
 def _first_seed(seeds: Any) -> int:
-    """The default ``seed``: 0, or the first of ``seeds=[...]``, whose folder Hydra then makes (cli.seed_folders
+    """The default ``seed``: 0, or the first of ``seeds=[...]``, whose folder Hydra then makes (checkpoints.seed_folders
     names the others alike)."""
     return int(seeds[0]) if seeds else 0
 
@@ -247,23 +247,23 @@ def _integer_keys() -> set[str]:
     return keys
 
 
-def integer_overrides(overrides: list[str]) -> list[str]:
-    """``overrides`` with a whole float given to an integer field written as an integer: ``total_timesteps=1e6``
-    becomes ``total_timesteps=1000000``, as users type it (Hydra reads ``1e6`` as a float, which an integer field
-    refuses). Anything else is left as it is, for Hydra to parse and check."""
+def whole_float_problems(overrides: list[str]) -> list[str]:
+    """For each whole float given to an integer field (``total_timesteps=1e6``: Hydra reads a float, which the field
+    refuses), how to write it: ``total_timesteps=1000000``, or Hydra's cast ``total_timesteps=int(1e6)``."""
     keys = _integer_keys()
-    result = []
+    problems = []
     for arg in overrides:
-        match = re.match(r"^([+~]{0,2})([A-Za-z_][\w.]*)=([-+]?[0-9._]*(?:[eE][-+]?[0-9]+)?)$", arg)
-        if match and match.group(2) in keys and match.group(3):
-            try:
-                value = float(match.group(3))
-            except ValueError:
-                value = math.nan
-            if math.isfinite(value) and value.is_integer() and not re.fullmatch(r"[-+]?[0-9_]+", match.group(3)):
-                arg = f"{match.group(1)}{match.group(2)}={int(value)}"
-        result.append(arg)
-    return result
+        match = re.match(r"^[+~]{0,2}([A-Za-z_][\w.]*)=([-+]?[0-9._]*(?:[eE][-+]?[0-9]+)?)$", arg)
+        if match is None or match.group(1) not in keys or re.fullmatch(r"[-+]?[0-9_]+", match.group(2)):
+            continue
+        try:
+            value = float(match.group(2))
+        except ValueError:
+            continue
+        if math.isfinite(value) and value.is_integer():
+            key, text = match.groups()
+            problems.append(f"{arg}: {key} is an integer, write {key}={int(value)} or {key}=int({text})")
+    return problems
 
 
 def compose_config(overrides: list[str] | None = None, conf_dir: Path = CONF_DIR) -> DictConfig:
@@ -271,8 +271,12 @@ def compose_config(overrides: list[str] | None = None, conf_dir: Path = CONF_DIR
 
     ``run_dir`` keeps its default interpolation; set it before :func:`~sb3_td3x.experiment.runner.run_experiment`.
     """
+    overrides = list(overrides or [])
+    problems = whole_float_problems(overrides)
+    if problems:
+        raise ConfigError("; ".join(problems) + ".")
     with initialize_config_dir(config_dir=str(Path(conf_dir).resolve()), version_base="1.3"):
-        return compose(config_name="config", overrides=integer_overrides(list(overrides or [])))
+        return compose(config_name="config", overrides=overrides)
 
 
 def check_config(cfg: DictConfig) -> None:

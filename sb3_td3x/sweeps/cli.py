@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import re
 import signal
 import sys
 import threading
@@ -91,9 +92,37 @@ def main(argv: list[str] | None = None) -> int:
     except SweepError as err:
         print(redact(f"error: {err}"), file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print("Interrupted outside a trial; the study is consistent. Run the same command to continue.", file=sys.stderr)
+    except KeyboardInterrupt:  # before the worker loop, which holds signals (sb3_td3x.sweeps.signals)
+        print(
+            "Interrupted before this worker started a trial: no trial of it is running. Run the same command to continue.",
+            file=sys.stderr,
+        )
         return 130
+
+
+def check_arguments(args: argparse.Namespace) -> None:
+    """Refuse a value no sweep can run with, before anything is opened or written."""
+    at_least = {
+        "--n-trials": (args.n_trials, 1),
+        "--heartbeat-interval": (args.heartbeat_interval, 1),
+        "--retry-stale": (args.retry_stale, 0),
+        "--max-consecutive-failures": (args.max_consecutive_failures, 1),
+        "--workers": (args.workers, 1),
+    }
+    for option, (value, lowest) in at_least.items():
+        if value is not None and value < lowest:
+            raise SweepError(f"{option} must be at least {lowest}, got {value}; see python -m sb3_td3x.sweeps --help")
+    if args.grace_period is not None and args.grace_period <= args.heartbeat_interval:
+        raise SweepError(
+            f"--grace-period ({args.grace_period}s) must be longer than --heartbeat-interval "
+            f"({args.heartbeat_interval}s): a trial is marked FAIL after a grace period without a heartbeat, so a "
+            f"shorter one would fail healthy trials between two beats. Leave it out (twice the interval) or pass "
+            f"--grace-period {2 * args.heartbeat_interval} or more."
+        )
+    if args.study_name is not None and not re.fullmatch(r"[\w.\-]+", args.study_name):
+        raise SweepError(f"--study-name {args.study_name!r} may hold only letters, digits, '.', '_' and '-'")
+    if args.output_dir.exists() and not args.output_dir.is_dir():
+        raise SweepError(f"--output-dir {args.output_dir} is a file; pass a folder for the study folders")
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -103,13 +132,12 @@ def _run(args: argparse.Namespace) -> int:
     from sb3_td3x.sweeps.results import write_results
     from sb3_td3x.sweeps.spec import load_sweep
     from sb3_td3x.sweeps.storage import default_storage_url, open_storage
-    from sb3_td3x.sweeps.worker import SweepInterrupted, open_study, run_worker
+    from sb3_td3x.sweeps.worker import SweepInterrupted, check_heartbeat_settings, open_study, run_worker
 
+    check_arguments(args)
     spec = load_sweep(args.sweep_file)
     study_name = args.study_name or spec.study_name
     n_trials = args.n_trials if args.n_trials is not None else spec.n_trials
-    if n_trials < 1:
-        raise SweepError(f"--n-trials must be at least 1, got {n_trials}")
     study_dir = (args.output_dir / study_name).resolve()
     config_dir = (args.config_dir or DEFAULT_CONFIG_DIR).resolve()
     if not (config_dir / "config.yaml").is_file():
@@ -145,6 +173,7 @@ def _run(args: argparse.Namespace) -> int:
         finish(study)
         return 0
 
+    check_heartbeat_settings(study, study_storage)  # before anything is said about the study: a refusal comes alone
     logger.info(
         "study %s in %s: %d trials wanted, %d there", study_name, study_storage.display_url, n_trials, len(study.trials)
     )
@@ -172,13 +201,17 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def _launch(args: argparse.Namespace, storage_url: str, study_dir: Path, study_name: str, config_dir: Path) -> int:
+    import optuna
+
     from sb3_td3x.sweeps.launch import load_launcher, submit_workers
     from sb3_td3x.sweeps.storage import open_storage
+    from sb3_td3x.sweeps.worker import check_heartbeat_settings
 
-    if args.workers < 1:
-        raise SweepError(f"--workers must be at least 1, got {args.workers}")
-    # An unreachable storage fails here, once, rather than in every job.
-    open_storage(storage_url, study_name, args.heartbeat_interval, args.grace_period, args.retry_stale)
+    # An unreachable storage or heartbeat settings the study refuses fail here, once, rather than in every job.
+    study_storage = open_storage(storage_url, study_name, args.heartbeat_interval, args.grace_period, args.retry_stale)
+    if study_name in optuna.get_all_study_names(study_storage.storage):
+        study = optuna.load_study(study_name=study_name, storage=study_storage.storage)
+        check_heartbeat_settings(study, study_storage, record=False)
     cluster, executor_params = load_launcher(args.launcher, study_dir / "jobs", f"sweep-{study_name}")
     if storage_url.startswith("sqlite") and cluster == "slurm":
         logger.warning(

@@ -19,6 +19,7 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from sb3_td3x.sweeps.errors import SweepSpecError
+from sb3_td3x.sweeps.spec import check_readable_file
 
 _LAUNCHERS = {
     "hydra_plugins.hydra_submitit_launcher.submitit_launcher.SlurmLauncher": "slurm",
@@ -37,12 +38,13 @@ def load_launcher(path: str | Path, job_folder: Path, job_name: str) -> tuple[st
         from hydra_plugins.hydra_submitit_launcher.config import BaseQueueConf, LocalQueueConf, SlurmQueueConf
     except ImportError:
         raise SweepSpecError("--launcher needs hydra-submitit-launcher: pip install 'sb3-td3x[cluster]'") from None
-    if not source.is_file():
-        raise SweepSpecError(f"launcher file {source} does not exist (the ready ones are in sweeps/launcher/)")
+    check_readable_file(source, "launcher file", "the ready ones are in sweeps/launcher/")
     try:
         loaded = OmegaConf.load(source)
     except (yaml.YAMLError, UnicodeDecodeError) as err:
         raise SweepSpecError(f"launcher file {source} is not valid YAML: {err}") from None
+    except OSError as err:
+        raise SweepSpecError(f"launcher file {source} cannot be read: {err.strerror}") from None
     target = loaded.get("_target_") if isinstance(loaded, DictConfig) else None
     if target not in _LAUNCHERS:
         raise SweepSpecError(f"{source}: _target_ must be one of {sorted(_LAUNCHERS)}, as in Hydra's submitit launcher")

@@ -54,12 +54,12 @@ SEED_VALUES, SEED_VALUES_STEP = "seed_values", "seed_values_step"
 def seed_overrides(seeds: list[int], run_dir: Path, resume: bool = False) -> list[str]:
     """A trial's own overrides: its seed (and ``seeds=[...]`` for several), its folder, and ``resume`` for the copy
     of an interrupted trial (several seeds resume from the first seed's folder)."""
-    from sb3_td3x.experiment.checkpoints import seed_run_dir
+    from sb3_td3x.experiment.checkpoints import seed_folders
 
     if len(seeds) == 1:
         return [f"seed={seeds[0]}", f"run_dir={run_dir}"] + ([f"resume={run_dir}"] if resume else [])
     own = [f"seed={seeds[0]}", f"seeds={override_value(seeds)}", f"run_dir={run_dir}"]
-    return own + ([f"resume={seed_run_dir(run_dir, seeds[0])}"] if resume else [])
+    return own + ([f"resume={seed_folders(run_dir, seeds[:1])[0]}"] if resume else [])
 
 
 def override_key(override: str) -> str:
@@ -107,6 +107,20 @@ def check_composes(spec: SweepSpec, config_dir: Path, extra_overrides: list[str]
         ) from None
 
 
+def worker_id() -> str:
+    """This worker as the records name it: ``host:pid``."""
+    return f"{socket.gethostname()}:{os.getpid()}"
+
+
+class TrialFinishedElsewhere(Exception):
+    """The trial was finished by another worker (marked FAIL as stale while this one was cut off): stop training."""
+
+    def __init__(self, num_timesteps: int | None, mean_return: float | None) -> None:
+        self.num_timesteps = num_timesteps
+        self.mean_return = mean_return
+        super().__init__(f"trial already finished by another worker (found at step {num_timesteps})")
+
+
 @dataclass
 class TrialResult:
     """What :class:`TrialObjective` hands back to the worker, which tells it to Optuna."""
@@ -116,6 +130,8 @@ class TrialResult:
     reason: str | None = None  #: why a trial was pruned or failed; stored as the trial's ``fail_reason``
     interrupted: bool = False  #: stopped by Ctrl-C / SIGTERM: the worker re-queues the trial and stops
     crashed: bool = False  #: raised an error other than divergence: its traceback is in the trial folder
+    step: int | None = None  #: the step of the trial's last evaluation, if it had one
+    finished_elsewhere: bool = False  #: another worker had finished the trial: the result is kept as a late result
 
 
 class TrialObjective:
@@ -150,6 +166,12 @@ class TrialObjective:
         return (self.study_dir / f"trial_{number:04d}").resolve()
 
     def __call__(self, trial: optuna.Trial) -> TrialResult:
+        try:
+            return self._run(trial)
+        except optuna.exceptions.UpdateFinishedTrialError:  # finished elsewhere before training began
+            return TrialResult(optuna.trial.TrialState.FAIL, reason="finished by another worker", finished_elsewhere=True)
+
+    def _run(self, trial: optuna.Trial) -> TrialResult:
         from sb3_td3x.experiment.errors import TrainingDiverged, TrainingInterrupted
 
         values = {param.path: param.suggest(trial) for param in self.spec.params}
@@ -169,14 +191,19 @@ class TrialObjective:
             trial.set_user_attr("seeds", seeds)
             trial.set_user_attr("seeds_aggregate", self.spec.seeds_aggregate)
         trial.set_user_attr("run_dir", str(run_dir))
-        trial.set_user_attr("worker", f"{socket.gethostname()}:{os.getpid()}")
+        trial.set_user_attr("worker", worker_id())
 
         evaluations: list[float] = []
+        steps: list[int] = []
         what = "mean return" if len(seeds) == 1 else f"{self.spec.seeds_aggregate} return of seeds {seeds}"
 
         def report(num_timesteps: int, mean_return: float) -> None:
             evaluations.append(mean_return)
-            trial.report(mean_return, step=num_timesteps)
+            steps.append(num_timesteps)
+            try:
+                trial.report(mean_return, step=num_timesteps)
+            except optuna.exceptions.UpdateFinishedTrialError:  # failed as stale while this worker was cut off
+                raise TrialFinishedElsewhere(num_timesteps, mean_return) from None
             if trial.should_prune():
                 raise optuna.TrialPruned(
                     f"pruned by {type(trial.study.pruner).__name__} at step {num_timesteps} "
@@ -187,8 +214,11 @@ class TrialObjective:
 
         def report_seeds(num_timesteps: int, returns: dict[int, float]) -> None:
             seed_values.update({str(seed): float(value) for seed, value in returns.items()})  # JSON keys are text
-            trial.set_user_attr(SEED_VALUES, dict(sorted(seed_values.items(), key=lambda item: int(item[0]))))
-            trial.set_user_attr(SEED_VALUES_STEP, int(num_timesteps))
+            try:
+                trial.set_user_attr(SEED_VALUES, dict(sorted(seed_values.items(), key=lambda item: int(item[0]))))
+                trial.set_user_attr(SEED_VALUES_STEP, int(num_timesteps))
+            except optuna.exceptions.UpdateFinishedTrialError:
+                raise TrialFinishedElsewhere(num_timesteps, None) from None
 
         seed_options = {} if len(seeds) == 1 else {"seeds_aggregate": self.spec.seeds_aggregate, "report_seeds": report_seeds}
         try:
@@ -197,7 +227,15 @@ class TrialObjective:
                 cfg.torch_threads = 1
             final_return = self.train(cfg, report, **seed_options)
         except optuna.TrialPruned as pruned:
-            return TrialResult(optuna.trial.TrialState.PRUNED, reason=str(pruned))
+            return TrialResult(optuna.trial.TrialState.PRUNED, reason=str(pruned), step=steps[-1] if steps else None)
+        except TrialFinishedElsewhere as late:
+            return TrialResult(
+                optuna.trial.TrialState.FAIL,
+                value=late.mean_return,
+                reason=str(late),
+                step=late.num_timesteps,
+                finished_elsewhere=True,
+            )
         except TrainingDiverged as err:
             return TrialResult(
                 optuna.trial.TrialState.FAIL, reason=f"diverged: {err.what} became {err.value} at step {err.num_timesteps}"
@@ -213,7 +251,7 @@ class TrialObjective:
         value = max(evaluations) if self.spec.metric == "eval/best_mean_return" and evaluations else final_return
         if value is None or not math.isfinite(value):
             return TrialResult(optuna.trial.TrialState.FAIL, reason=f"diverged: the metric {self.spec.metric} is {value}")
-        return TrialResult(optuna.trial.TrialState.COMPLETE, value=float(value))
+        return TrialResult(optuna.trial.TrialState.COMPLETE, value=float(value), step=steps[-1] if steps else None)
 
     @staticmethod
     def _recorded_seeds(trial: optuna.Trial) -> list[int]:
@@ -228,7 +266,7 @@ class TrialObjective:
         Ctrl-C/SIGTERM and left a complete checkpoint (of its first seed, for several). A copy of a trial failed by
         the heartbeat starts afresh in its own folder instead, since its first worker may still be writing to the
         old one."""
-        from sb3_td3x.experiment.checkpoints import resume_checkpoint, seed_run_dir
+        from sb3_td3x.experiment.checkpoints import resume_checkpoint, seed_folders
         from sb3_td3x.experiment.errors import ConfigError
 
         if not trial.user_attrs.get(RESUMABLE):
@@ -236,7 +274,7 @@ class TrialObjective:
         run_dir = Path(trial.user_attrs["run_dir"])
         seeds = cls._recorded_seeds(trial)
         try:
-            resume_checkpoint(run_dir if len(seeds) == 1 else seed_run_dir(run_dir, seeds[0]))
+            resume_checkpoint(run_dir if len(seeds) == 1 else seed_folders(run_dir, seeds[:1])[0])
         except ConfigError:  # stopped before its first checkpoint: start again
             return None
         return run_dir

@@ -29,6 +29,7 @@ from optuna.trial import FrozenTrial, TrialState
 
 from sb3_td3x.common.redaction import redact
 from sb3_td3x.sweeps.objective import SEED_VALUES, TRIAL_DEFAULTS
+from sb3_td3x.sweeps.worker import LATE_RESULT_PREFIX
 
 logger = logging.getLogger(__name__)
 
@@ -94,9 +95,7 @@ def _config_groups(config_dir: Path, overrides: list[str]) -> set[str]:
     return {group for group in cfg.hydra.runtime.choices if not group.startswith("hydra/")}
 
 
-def summary_text(
-    study: optuna.Study, storage_display: str, dashboard_command: str, dashboard_hint: str | None = None
-) -> str:
+def summary_text(study: optuna.Study, storage_display: str, dashboard_command: str, dashboard_hint: str | None = None) -> str:
     """The text of ``summary.txt``, secrets masked; ``dashboard_hint`` (a sentence on how to give the dashboard a
     masked password) goes under the dashboard command."""
     trials = study.get_trials(deepcopy=False)
@@ -126,10 +125,30 @@ def summary_text(
         for t in stopped:
             reason = t.user_attrs.get("fail_reason") or t.user_attrs.get("prune_reason") or STALE_REASON
             lines.append(f"  {t.number:4d} {t.state.name:7s} {reason}")
+    lines += _late_results_lines(study)
     lines += ["", f"dashboard: {dashboard_command}"]
     if dashboard_hint:
         lines.append(f"  {dashboard_hint}")
     return redact("\n".join(lines) + "\n")
+
+
+def _late_results_lines(study: optuna.Study) -> list[str]:
+    """Results that cut-off workers measured after their trial had been failed as stale (``late_result_trial_<n>``)."""
+    late = sorted(
+        (int(key.removeprefix(LATE_RESULT_PREFIX)), value)
+        for key, value in study.user_attrs.items()
+        if key.startswith(LATE_RESULT_PREFIX)
+    )
+    if not late:
+        return []
+    lines = ["", "late results (a worker cut off past the grace period came back after its trial was failed):"]
+    for number, result in late:
+        value = "no value" if result.get("value") is None else f"{result['value']:.3f}"
+        lines.append(
+            f"  {number:4d} {value} at step {result.get('step')}, {result.get('outcome')} in worker {result.get('worker')}; "
+            f"the trial stays {result.get('state_in_study')} (study attribute {LATE_RESULT_PREFIX}{number})"
+        )
+    return lines
 
 
 def _seeds_text(trial: FrozenTrial) -> str:

@@ -35,6 +35,7 @@ picks the aggregate: ``mean`` (default) or ``iqm``, the interquartile mean of
 from __future__ import annotations
 
 import math
+import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -258,15 +259,28 @@ def parse_param(path: str, entry: Any, source: Path) -> ParamSpec:
     return ParamSpec(path, dist)
 
 
+def check_readable_file(source: Path, what: str, hint: str) -> None:
+    """Raise a :class:`SweepSpecError` that says why ``source`` cannot be read: missing, a folder, or no permission."""
+    if source.is_dir():
+        raise SweepSpecError(f"{what} {source} is a folder; pass a YAML file ({hint})")
+    if not source.is_file():
+        raise SweepSpecError(f"{what} {source} does not exist ({hint})")
+    if not os.access(source, os.R_OK):
+        raise SweepSpecError(
+            f"{what} {source} cannot be read: permission denied for this user; make it readable (chmod u+r {source})"
+        )
+
+
 def load_sweep(path: str | Path) -> SweepSpec:
     """Read and check a sweep file; every problem is a :class:`SweepSpecError` that names the file and field."""
     source = Path(path)
-    if not source.is_file():
-        raise SweepSpecError(f"sweep file {source} does not exist (the ready ones are in sweeps/*.yaml)")
+    check_readable_file(source, "sweep file", "the ready ones are in sweeps/*.yaml")
     try:
         loaded = OmegaConf.load(source)
     except (yaml.YAMLError, UnicodeDecodeError) as err:  # report the position, not the parser's stack
         raise SweepSpecError(f"{source} is not valid YAML: {err}") from None
+    except OSError as err:  # unreadable after all (a file system error): say so, not a traceback
+        raise SweepSpecError(f"sweep file {source} cannot be read: {err.strerror}") from None
     if not isinstance(loaded, DictConfig):
         raise SweepSpecError(f"{source} must be a mapping of fields (study_name, metric, ...), not a list")
     # Overrides stay verbatim: an interpolation in them (algo.gradient_steps=${algo.train_freq}) belongs to the

@@ -58,6 +58,14 @@ class StudyStorage:
     storage: BaseStorage
     budget_lock: Callable[[], AbstractContextManager[None]]
     heartbeat_interval: int | None  #: ``None`` where the storage has no heartbeat (journal files)
+    grace_period: int | None = None  #: seconds without a heartbeat before a trial is stale (twice the interval if unset)
+
+    def heartbeat_settings(self) -> dict[str, int] | None:
+        """What decides when a trial is stale, as the study records it; ``None`` without heartbeat."""
+        if self.heartbeat_interval is None:
+            return None
+        grace_period = self.grace_period if self.grace_period is not None else 2 * self.heartbeat_interval
+        return {"heartbeat_interval": self.heartbeat_interval, "grace_period": grace_period}
 
     @property
     def display_url(self) -> str:
@@ -188,7 +196,7 @@ def _open_rdb(url: str, study_name: str, heartbeat_interval: int, grace_period: 
             f"cannot open storage {redact(url)}: {redact(reason)}. Check that the database server is running and "
             "reachable, and that the URL's user, password and database name are right."
         ) from None
-    return StudyStorage(url, storage, _rdb_lock(storage, backend, study_name, url), heartbeat_interval)
+    return StudyStorage(url, storage, _rdb_lock(storage, backend, study_name, url), heartbeat_interval, grace_period)
 
 
 def _importable(module: str) -> bool:

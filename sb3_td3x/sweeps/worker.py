@@ -8,13 +8,24 @@ Any number of workers, on one machine or many, may run against the same storage 
 3. tell Optuna how it ended: COMPLETE with its value, PRUNED, or FAIL with ``fail_reason`` in its user attributes.
 
 When the budget is spent the worker waits for trials still running elsewhere to end (or to be marked FAIL by the
-heartbeat), and the last worker writes the results (:mod:`sb3_td3x.sweeps.results`). Ctrl-C (or SIGTERM) lets the
-runner checkpoint, marks the running trial FAIL ("interrupted"), queues a copy with the same parameters, and stops
-the worker: running the same command again continues the study, and the copy resumes the run from its checkpoint.
+heartbeat), and the last worker writes the results (:mod:`sb3_td3x.sweeps.results`).
+
+Three rules keep the study's records true:
+
+* Every worker of a study uses the heartbeat settings the study was created with (recorded in its user attributes),
+  so that no worker marks another's healthy trial stale.
+* A worker that was cut off for longer than the grace period finds its trial already FAIL when it comes back. It
+  stops the trial at its next evaluation, keeps what it measured as the study's user attribute
+  ``late_result_trial_<n>`` (:func:`keep_late_result`) and goes on with the next trial.
+* SIGINT and SIGTERM are held while a trial is created and while its result is recorded
+  (:mod:`sb3_td3x.sweeps.signals`). During training the runner checkpoints and stops; the worker then marks the trial
+  FAIL ("interrupted"), queues a copy with the same parameters (which resumes from the checkpoint) and stops with
+  :class:`SweepInterrupted`, whose message says what became of the trial.
 """
 
 from __future__ import annotations
 
+import datetime
 import logging
 import time
 import warnings
@@ -28,7 +39,8 @@ from optuna.trial import FrozenTrial, TrialState
 
 from sb3_td3x.common.redaction import redact
 from sb3_td3x.sweeps.errors import SweepError
-from sb3_td3x.sweeps.objective import RESUMABLE, TrialObjective, TrialResult
+from sb3_td3x.sweeps.objective import RESUMABLE, TrialObjective, TrialResult, worker_id
+from sb3_td3x.sweeps.signals import HeldSignals
 from sb3_td3x.sweeps.spec import SweepSpec
 from sb3_td3x.sweeps.storage import StudyStorage, heartbeat
 
@@ -37,14 +49,19 @@ logger = logging.getLogger(__name__)
 #: How often a worker with nothing left to start looks whether the others' trials have ended.
 WAIT_POLL_S = 2.0
 
+#: The study's user attribute that holds the heartbeat settings it was created with.
+HEARTBEAT_ATTR = "heartbeat"
+
+#: Study user attribute ``late_result_trial_<n>``: what a cut-off worker measured on trial n after it was failed.
+LATE_RESULT_PREFIX = "late_result_trial_"
+
 
 class SweepInterrupted(Exception):
-    """The worker was stopped by Ctrl-C or SIGTERM; the interrupted trial is queued again."""
+    """The worker was stopped by Ctrl-C or SIGTERM; ``what`` says what became of its trial."""
 
-    def __init__(self, trial_number: int | None) -> None:
+    def __init__(self, trial_number: int | None, what: str) -> None:
         self.trial_number = trial_number
-        which = f"trial {trial_number} was marked FAIL (interrupted) and queued again; " if trial_number is not None else ""
-        super().__init__(f"Interrupted: {which}run the same command again to continue the study.")
+        super().__init__(f"Interrupted: {what}; run the same command again to continue the study.")
 
 
 @dataclass
@@ -120,6 +137,30 @@ def claim_trial(study: optuna.Study, spec: SweepSpec, study_storage: StudyStorag
         return trial
 
 
+def check_heartbeat_settings(study: optuna.Study, study_storage: StudyStorage, record: bool = True) -> None:
+    """Record this worker's heartbeat settings on a study that has none yet (``record``), or refuse them when they
+    differ from the study's: a worker with a shorter grace period would fail the healthy trials of the others."""
+    mine = study_storage.heartbeat_settings()
+    if mine is None:  # no heartbeat (journal storage): nothing can go stale
+        return
+    with study_storage.budget_lock():  # two workers creating the study together record one setting
+        recorded = study.user_attrs.get(HEARTBEAT_ATTR)
+        if recorded is None:
+            if record:
+                study.set_user_attr(HEARTBEAT_ATTR, mine)
+            return
+    if recorded == mine:
+        return
+    theirs_interval, theirs_grace = recorded.get("heartbeat_interval"), recorded.get("grace_period")
+    raise SweepError(
+        f"study {study.study_name!r} in {study_storage.display_url} was created with a heartbeat interval of "
+        f"{theirs_interval}s and a grace period of {theirs_grace}s, but this worker has --heartbeat-interval "
+        f"{mine['heartbeat_interval']} and a grace period of {mine['grace_period']}s. Every worker of a study must use "
+        f"the same ones, or a worker with a shorter grace period marks other workers' healthy trials FAIL. Start this "
+        f"worker with --heartbeat-interval {theirs_interval} --grace-period {theirs_grace}, or use another --study-name."
+    )
+
+
 def tell(study: optuna.Study, trial: optuna.Trial, result: TrialResult) -> None:
     if result.reason is not None:
         trial.set_user_attr("fail_reason" if result.state == TrialState.FAIL else "prune_reason", redact(result.reason))
@@ -129,6 +170,54 @@ def tell(study: optuna.Study, trial: optuna.Trial, result: TrialResult) -> None:
     else:
         study.tell(trial, state=result.state)
         logger.info("trial %d %s: %s", trial.number, result.state.name, result.reason)
+
+
+def record(study: optuna.Study, trial: optuna.Trial, result: TrialResult) -> bool:
+    """Tell Optuna how the trial ended and queue an interrupted one again; ``False`` when another worker had already
+    finished it, whose result then goes to :func:`keep_late_result` instead."""
+    if not result.finished_elsewhere and not _is_finished(study, trial):
+        try:
+            if result.interrupted:
+                trial.set_user_attr(RESUMABLE, True)  # its queued copy continues from the checkpoint
+            tell(study, trial, result)
+            if result.interrupted:
+                requeue(study, trial.number)
+            return True
+        except (optuna.exceptions.UpdateFinishedTrialError, ValueError):  # ValueError: "Cannot tell a FAIL trial"
+            if not _is_finished(study, trial):
+                raise
+    keep_late_result(study, trial, result)
+    return False
+
+
+def _is_finished(study: optuna.Study, trial: optuna.Trial) -> bool:
+    return study._storage.get_trial(trial._trial_id).state.is_finished()
+
+
+def keep_late_result(study: optuna.Study, trial: optuna.Trial, result: TrialResult) -> None:
+    """Keep what this worker measured on a trial another worker had finished, as the study's user attribute
+    ``late_result_trial_<n>``: the trial's own record stays as the study decided it."""
+    state = study._storage.get_trial(trial._trial_id).state
+    late = {
+        "value": result.value,
+        "step": result.step,
+        "outcome": "stopped" if result.finished_elsewhere else result.state.name,
+        "reason": redact(result.reason) if result.reason else None,
+        "worker": worker_id(),
+        "state_in_study": state.name,
+        "recorded": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+    }
+    study.set_user_attr(f"{LATE_RESULT_PREFIX}{trial.number}", late)
+    logger.warning(
+        "trial %d was marked %s by another worker while this one was cut off (no heartbeat for longer than the grace "
+        "period); its result here (value %s at step %s) is kept as the study's user attribute %s%d",
+        trial.number,
+        state.name,
+        result.value,
+        result.step,
+        LATE_RESULT_PREFIX,
+        trial.number,
+    )
 
 
 def requeue(study: optuna.Study, trial_number: int) -> None:
@@ -153,48 +242,80 @@ def run_worker(
     :param max_consecutive_failures: stop this worker after so many trials in a row crashed (not diverged):
         that is a bug or a broken setup, not a bad hyper-parameter
     :param on_finished: called with the study once no trial is left anywhere (writes the results)
+    :raises SweepError: the heartbeat settings differ from the study's, or too many trials crashed in a row
+    :raises SweepInterrupted: SIGINT or SIGTERM arrived
     """
+    check_heartbeat_settings(study, study_storage)
     ran: list[int] = []
     crashes: list[str] = []
-    while True:
-        trial = claim_trial(study, spec, study_storage, n_trials)
-        if trial is None:
-            if not _wait_for_others(study, study_storage):
-                return WorkerSummary(ran, study_finished=False)
-            if any(t.state == TrialState.WAITING for t in study.get_trials(deepcopy=False)):
-                continue  # a dead worker's trial was queued again: run it
-            if on_finished is not None:
-                on_finished(study)
-            return WorkerSummary(ran, study_finished=True)
+    with HeldSignals() as signals:
+        while True:
+            trial = claim_trial(study, spec, study_storage, n_trials)
+            if trial is None:
+                finished = _wait_for_others(study, study_storage, signals)
+                if signals.received:
+                    raise SweepInterrupted(None, "no trial of this worker was running")
+                if not finished:
+                    return WorkerSummary(ran, study_finished=False)
+                if any(t.state == TrialState.WAITING for t in study.get_trials(deepcopy=False)):
+                    continue  # a dead worker's trial was queued again: run it
+                if on_finished is not None:
+                    on_finished(study)
+                return WorkerSummary(ran, study_finished=True)
 
-        logger.info("trial %d started in %s", trial.number, objective.run_dir(trial.number))
-        try:
-            with heartbeat(study_storage, trial._trial_id):
-                result = objective(trial)
-        except KeyboardInterrupt:  # Ctrl-C outside training (while composing the config, say)
-            result = TrialResult(TrialState.FAIL, reason="interrupted by SIGINT", interrupted=True)
-        if result.interrupted:
-            trial.set_user_attr(RESUMABLE, True)  # its queued copy continues from the checkpoint
-        tell(study, trial, result)
-        ran.append(trial.number)
-        if result.interrupted:
-            requeue(study, trial.number)
-            raise SweepInterrupted(trial.number)
-        if result.crashed:
-            crashes.append(f"trial {trial.number}: {result.reason} (see {objective.run_dir(trial.number)}/sweep_error.txt)")
-            if len(crashes) >= max_consecutive_failures:
-                raise SweepError(
-                    f"{len(crashes)} trials in a row crashed, so this worker stopped; the last ones:\n  "
-                    + "\n  ".join(crashes[-3:])
+            logger.info("trial %d started in %s", trial.number, objective.run_dir(trial.number))
+            result = _run_trial(trial, objective, study_storage, signals)
+            told = record(study, trial, result)
+            ran.append(trial.number)
+            if signals.received or result.interrupted:
+                raise SweepInterrupted(trial.number, _what_became_of(trial.number, result, told))
+            if result.crashed:
+                crashes.append(
+                    f"trial {trial.number}: {result.reason} (see {objective.run_dir(trial.number)}/sweep_error.txt)"
                 )
-        else:
-            crashes.clear()
+                if len(crashes) >= max_consecutive_failures:
+                    raise SweepError(
+                        f"{len(crashes)} trials in a row crashed, so this worker stopped; the last ones:\n  "
+                        + "\n  ".join(crashes[-3:])
+                    )
+            else:
+                crashes.clear()
 
 
-def _wait_for_others(study: optuna.Study, study_storage: StudyStorage) -> bool:
-    """Wait until no trial is running in another worker; ``False`` if that cannot be known (no heartbeat)."""
+def _run_trial(
+    trial: optuna.Trial, objective: TrialObjective, study_storage: StudyStorage, signals: HeldSignals
+) -> TrialResult:
+    """Train the trial with signals acting; one that arrived while it was created ends it before it starts."""
+    if signals.received:
+        return TrialResult(TrialState.FAIL, reason=f"interrupted by {signals.received} before it started", interrupted=True)
+    result = None
+    try:
+        with heartbeat(study_storage, trial._trial_id), signals.live():
+            result = objective(trial)
+    except KeyboardInterrupt:  # a signal outside the runner's own handling (composing the config, a second Ctrl-C)
+        signals.hold()
+    if result is None:
+        return TrialResult(TrialState.FAIL, reason=f"interrupted by {signals.received or 'SIGINT'}", interrupted=True)
+    return result
+
+
+def _what_became_of(number: int, result: TrialResult, told: bool) -> str:
+    """The truth about a trial whose worker stops on a signal, for :class:`SweepInterrupted`."""
+    if not told:
+        return (
+            f"trial {number} had been finished by another worker; this worker's result is kept as the study's user "
+            f"attribute {LATE_RESULT_PREFIX}{number}, and no trial of this worker is running"
+        )
+    if result.interrupted:
+        return f"trial {number} was marked FAIL (interrupted) and queued again"
+    return f"trial {number} ended {result.state.name} and was recorded before the worker stopped; no trial of it is running"
+
+
+def _wait_for_others(study: optuna.Study, study_storage: StudyStorage, signals: HeldSignals) -> bool:
+    """Wait until no trial is running in another worker; ``False`` if that cannot be known (no heartbeat) or a
+    signal arrived."""
     reported = False
-    while True:
+    while not signals.received:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
             fail_stale_trials(study)
@@ -212,6 +333,7 @@ def _wait_for_others(study: optuna.Study, study_storage: StudyStorage) -> bool:
             logger.info("no trial left to start; waiting for trials %s running in other workers", running)
             reported = True
         time.sleep(min(study_storage.heartbeat_interval, WAIT_POLL_S))
+    return False
 
 
 def study_dir_for(output_dir: Path, study_name: str) -> Path:

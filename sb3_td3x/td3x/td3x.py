@@ -12,6 +12,7 @@ from typing import Any, ClassVar, TypeVar
 import numpy as np
 import torch as th
 from gymnasium import spaces
+from stable_baselines3.common.base_class import maybe_make_env
 from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.noise import ActionNoise, NormalActionNoise
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
@@ -195,58 +196,14 @@ class TD3X(OffPolicyAlgorithm):
         flush_denormals: bool = True,
         _init_setup_model: bool = True,
     ):
-        self._check_hyperparameters(
-            learning_rate=learning_rate,
-            critic_learning_rate=critic_learning_rate,
-            buffer_size=buffer_size,
-            learning_starts=learning_starts,
-            batch_size=batch_size,
-            tau=tau,
-            gamma=gamma,
-            gradient_steps=gradient_steps,
-            n_steps=n_steps,
-            policy_delay=policy_delay,
-            target_policy_noise=target_policy_noise,
-            target_noise_clip=target_noise_clip,
-        )
-        if env is not None and not isinstance(env, str):  # None when loading a saved model without env
-            self._check_action_space(env.action_space)
-        try:
-            super().__init__(
-                policy,
-                env,
-                learning_rate,
-                buffer_size,
-                learning_starts,
-                batch_size,
-                tau,
-                gamma,
-                train_freq,
-                gradient_steps,
-                action_noise=action_noise,
-                replay_buffer_class=replay_buffer_class,
-                replay_buffer_kwargs=replay_buffer_kwargs,
-                optimize_memory_usage=optimize_memory_usage,
-                n_steps=n_steps,
-                policy_kwargs=policy_kwargs,
-                stats_window_size=stats_window_size,
-                tensorboard_log=tensorboard_log,
-                verbose=verbose,
-                device=device,
-                seed=seed,
-                sde_support=False,
-                # Checked by _check_action_space: UnsupportedActionSpace, a ValueError and an AssertionError.
-                supported_action_spaces=None,
-                support_multi_env=True,
-            )
-        except AssertionError:
-            # SB3 asserts on unsupported action spaces; a gym id only gives us its env here.
-            if getattr(self, "action_space", None) is not None:
-                self._check_action_space(self.action_space)
-            raise
-        if getattr(self, "action_space", None) is not None:  # unset while loading a saved model without env
-            self._check_action_space(self.action_space)
-
+        self._check_hyperparameters(**locals())  # each range check takes its argument by name
+        env = self._checked_env(env, verbose)
+        super().__init__(
+            policy, env, learning_rate, buffer_size, learning_starts, batch_size, tau, gamma, train_freq, gradient_steps,
+            action_noise=action_noise, replay_buffer_class=replay_buffer_class, replay_buffer_kwargs=replay_buffer_kwargs,
+            optimize_memory_usage=optimize_memory_usage, n_steps=n_steps, policy_kwargs=policy_kwargs,
+            stats_window_size=stats_window_size, tensorboard_log=tensorboard_log, verbose=verbose, device=device, seed=seed,
+            sde_support=False, supported_action_spaces=None, support_multi_env=True)  # fmt: skip
         self.policy_delay = policy_delay
         self.target_noise_clip = target_noise_clip
         self.target_policy_noise = target_policy_noise
@@ -258,11 +215,8 @@ class TD3X(OffPolicyAlgorithm):
         self.cuda_graph = cuda_graph
         self.mlp_update = mlp_update
         self.flush_denormals = flush_denormals
-        # Number of actor (delayed) updates done so far; saved with the model.
-        self._n_actor_updates = 0
-        if cuda_graph:
-            self._check_cuda_graph_setup()
-
+        self._n_actor_updates = 0  # actor (delayed) updates done so far; saved with the model
+        self._check_cuda_graph_setup()
         if _init_setup_model:
             self._setup_model()
 
@@ -274,10 +228,20 @@ class TD3X(OffPolicyAlgorithm):
             self.replay_buffer.random_streams = self.random_streams  # step 4's indices
 
     def _check_cuda_graph_setup(self) -> None:
+        if not self.cuda_graph:
+            return
         if self.device.type != "cuda":
             raise ValueError(f"cuda_graph=True needs a CUDA device, got device={self.device}; use device='cuda'.")
         if self.compile_update:
             raise ValueError("cuda_graph=True and compile_update=True are exclusive: choose one.")
+
+    @classmethod
+    def _checked_env(cls, env: GymEnv | str | None, verbose: int) -> GymEnv | None:
+        """The env made as SB3 makes it, its action space checked here: SB3 only asserts on one TD3 cannot act in."""
+        env = maybe_make_env(env, verbose)
+        if env is not None:  # None: a saved model loading without its env
+            cls._check_action_space(env.action_space)
+        return env
 
     @staticmethod
     def _check_action_space(action_space: spaces.Space) -> None:

@@ -20,7 +20,7 @@ import torch as th
 from omegaconf import OmegaConf
 
 from sb3_td3x.experiment.checkpoints import META_FILE
-from sb3_td3x.experiment.cli import seed_folders
+from sb3_td3x.experiment.checkpoints import seed_folders
 from sb3_td3x.experiment.schemas import compose_config
 
 REPO = Path(__file__).resolve().parents[2]
@@ -168,11 +168,12 @@ def test_a_batch_stopped_by_sigterm_resumes_from_any_seed_folder(tmp_path):
 
 
 def test_seed_folders_are_named_as_lone_runs():
-    assert seed_folders(Path("runs/hopper/td3/seed0/2026-01-01_00-00-00"), 0, [0, 2]) == [
-        "runs/hopper/td3/seed0/2026-01-01_00-00-00",
-        "runs/hopper/td3/seed2/2026-01-01_00-00-00",
+    assert seed_folders("runs/hopper/td3/seed0/2026-01-01_00-00-00", [0, 2], seed=0) == [
+        Path("runs/hopper/td3/seed0/2026-01-01_00-00-00"),
+        Path("runs/hopper/td3/seed2/2026-01-01_00-00-00"),
     ]
-    assert seed_folders(Path("/tmp/mine"), 0, [0, 1]) == ["/tmp/mine/seed0", "/tmp/mine/seed1"]
+    assert seed_folders("/tmp/mine", [0, 1], seed=0) == [Path("/tmp/mine/seed0"), Path("/tmp/mine/seed1")]
+    assert seed_folders("/tmp/seed0/x", [0, 1]) == [Path("/tmp/seed0/x/seed0"), Path("/tmp/seed0/x/seed1")]
     # seed is the first of seeds unless given, so Hydra makes the first seed's folder and the others are named alike
     assert compose_config(["seeds=[3,4]"]).seed == 3 and compose_config(["seeds=[3,4]", "seed=4"]).seed == 4
     assert compose_config([]).seed == 0 and "seed3" in compose_config(["seeds=[3,4]"]).run_dir

@@ -9,7 +9,7 @@ import torch as th
 from stable_baselines3.common.logger import HumanOutputFormat, Logger
 
 from sb3_td3x.experiment.errors import ConfigError
-from sb3_td3x.experiment.schemas import check_config, compose_config, integer_overrides
+from sb3_td3x.experiment.schemas import check_config, compose_config, whole_float_problems
 from sb3_td3x.td3x import TD3X, TD3XCritic, TD3XPolicy, UnsupportedActionSpace
 from sb3_td3x.td3x.hooks import HOOK_NAMES, HOOKS, changed_hooks, reference_class
 from sb3_td3x.td3x.update_paths.choose import choose_update
@@ -201,10 +201,14 @@ def test_the_config_refuses_with_the_constructors_words(override):
     assert f"algo.{name}=" in str(config_error.value) and allowed in str(config_error.value)
 
 
-def test_a_whole_float_is_accepted_for_an_integer_field():
-    assert integer_overrides(["total_timesteps=1e6", "algo.buffer_size=2.5e5", "algo.tau=1e-3", "seed=3"]) == [
-        "total_timesteps=1000000", "algo.buffer_size=250000", "algo.tau=1e-3", "seed=3"]
-    cfg = compose_config(["total_timesteps=1e6", "algo.batch_size=2.56e2"])
+def test_a_whole_float_for_an_integer_field_says_how_to_write_it():
+    assert whole_float_problems(["total_timesteps=1e6", "algo.buffer_size=2.5e5", "algo.tau=1e-3", "seed=3"]) == [
+        "total_timesteps=1e6: total_timesteps is an integer, write total_timesteps=1000000 or total_timesteps=int(1e6)",
+        "algo.buffer_size=2.5e5: algo.buffer_size is an integer, write algo.buffer_size=250000 or algo.buffer_size=int(2.5e5)",
+    ]
+    with pytest.raises(ConfigError, match=r"write total_timesteps=1000000 or total_timesteps=int\(1e6\)"):
+        compose_config(["total_timesteps=1e6"])
+    cfg = compose_config(["total_timesteps=int(1e6)", "algo.batch_size=256"])  # Hydra's cast
     assert cfg.total_timesteps == 1_000_000 and cfg.algo.batch_size == 256
     with pytest.raises(Exception, match="algo.batch_size=25.5"):  # not a whole number: Hydra's type check refuses it
         compose_config(["algo.batch_size=25.5"])

@@ -18,8 +18,8 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 import torch as th
-import torch.optim.optimizer as _optim_module
 
+from sb3_td3x.common.torch_internals import global_optimizer_hooks
 from sb3_td3x.td3x.hooks import changed_hooks
 from sb3_td3x.td3x.update_paths import requirements
 
@@ -101,8 +101,10 @@ class FunctionalCompiledUpdate(requirements.FastPath):
                 reasons.append("the optimizer uses amsgrad, maximize or differentiable")
             if optimizer._optimizer_step_pre_hooks or optimizer._optimizer_step_post_hooks:
                 reasons.append("an optimizer has step hooks")
-        if _optim_module._global_optimizer_pre_hooks or _optim_module._global_optimizer_post_hooks:
-            reasons.append("a global optimizer step hook is registered")
+        global_hooks = global_optimizer_hooks()
+        if global_hooks is not False:
+            reasons.append("a global optimizer step hook is registered" if global_hooks else
+                           f"global optimizer step hooks cannot be checked with torch {th.__version__}")
         for role in ("actor", "critic"):
             reasons += requirements.plain_parameters(getattr(model, role), role)
         reasons += [r for r in requirements.module_hooks(model.policy, "policy") if "backward" in r]

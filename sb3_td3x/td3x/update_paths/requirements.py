@@ -18,8 +18,8 @@ from stable_baselines3.common.preprocessing import is_image_space
 from stable_baselines3.common.torch_layers import FlattenExtractor
 from stable_baselines3.td3.policies import Actor
 from torch import nn
-from torch.nn.modules import module as _module_globals
 
+from sb3_td3x.common.torch_internals import global_module_hooks
 from sb3_td3x.td3x.hooks import defining_class, reference_class
 from sb3_td3x.td3x.policies import TD3XCritic, TD3XPolicy
 
@@ -29,14 +29,6 @@ CRITIC_METHODS = ("forward", "q1_forward", "q_values", "extract_features")
 
 # What SB3's ``predict`` runs between the observation and the actor: the exploration shortcut skips these.
 PREDICT_METHODS = ("predict", "_predict", "forward", "obs_to_tensor", "scale_action", "unscale_action")
-
-_GLOBAL_MODULE_HOOKS = (
-    "_global_forward_hooks",
-    "_global_forward_pre_hooks",
-    "_global_backward_hooks",
-    "_global_backward_pre_hooks",
-)
-
 
 class FastPath:
     """A way of running TD3X's math that replaces some of the user's code with its own. It declares which hooks it
@@ -121,9 +113,10 @@ def module_hooks(module: nn.Module, role: str) -> list[str]:
             if getattr(sub, kind, None):
                 where = f"{role}.{name}" if name else role
                 found.append(f"a {kind.strip('_').replace('_', ' ')[:-1]} on {where}")
-    for kind in _GLOBAL_MODULE_HOOKS:
-        if getattr(_module_globals, kind, None):
-            found.append(f"a global module {kind[len('_global_'):].replace('_', ' ')[:-1]}")
+    global_kinds = global_module_hooks()
+    if global_kinds is None:
+        found.append(f"global module hooks cannot be checked with torch {th.__version__}")
+    found += [f"a global module {kind.replace('_', ' ')} hook" for kind in global_kinds or []]
     return sorted(set(found))
 
 

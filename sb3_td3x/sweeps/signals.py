@@ -1,0 +1,77 @@
+"""SIGINT and SIGTERM in a sweep worker: held while a trial is created or its result recorded, acting while it trains.
+
+A signal that lands between Optuna creating a trial and the worker telling Optuna how it ended would leave the
+trial RUNNING with nobody to finish it. So the worker holds both signals (:class:`HeldSignals`): one that arrives
+is remembered, and the worker acts on it at the next safe point, after the trial is created or its result is
+written. Only while the trial runs (:meth:`HeldSignals.live`) does a signal act at once: during training the
+runner turns the first one into a checkpoint and a clean stop (``StopOnSignal``), and anywhere else in the trial
+it raises :class:`SignalInterrupt` (a :class:`KeyboardInterrupt`), which the worker records as an interrupted trial.
+
+A signal held while the worker waits for the storage's budget lock acts once the lock is free; the lock is held only
+for the moment another worker creates a trial.
+
+Signals can only be handled in the main thread; elsewhere this does nothing.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import signal
+import threading
+from collections.abc import Iterator
+from typing import Any
+
+SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
+class SignalInterrupt(KeyboardInterrupt):
+    """A signal that arrived while a trial ran; ``signal_name`` is ``"SIGINT"`` or ``"SIGTERM"``."""
+
+    def __init__(self, signal_name: str) -> None:
+        self.signal_name = signal_name
+        super().__init__(signal_name)
+
+
+class HeldSignals:
+    """Hold SIGINT and SIGTERM for as long as the ``with`` block runs; :attr:`received` names the first that came."""
+
+    def __init__(self) -> None:
+        self.received: str | None = None  #: "SIGINT" or "SIGTERM", once one has arrived
+        self._previous: dict[int, Any] = {}
+        self._active = threading.current_thread() is threading.main_thread()
+
+    def __enter__(self) -> HeldSignals:
+        if self._active:
+            self._previous = {sig: signal.getsignal(sig) for sig in SIGNALS}
+            self.hold()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
+        self._previous = {}
+
+    def hold(self) -> None:
+        """Remember signals instead of acting on them (again, after :meth:`live`)."""
+        self._install(self._remember)
+
+    @contextlib.contextmanager
+    def live(self) -> Iterator[None]:
+        """Let signals act while the block runs: each is remembered and raises :class:`SignalInterrupt`."""
+        self._install(self._interrupt)
+        try:
+            yield
+        finally:
+            self.hold()
+
+    def _install(self, handler: Any) -> None:
+        if self._active:
+            for sig in SIGNALS:
+                signal.signal(sig, handler)
+
+    def _remember(self, signum: int, frame: Any) -> None:
+        self.received = self.received or signal.Signals(signum).name
+
+    def _interrupt(self, signum: int, frame: Any) -> None:
+        self._remember(signum, frame)
+        raise SignalInterrupt(signal.Signals(signum).name)
