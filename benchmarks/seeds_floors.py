@@ -9,7 +9,7 @@ One process, one torch thread (the setting of one core of ``batched_per_core`` a
 
 - ``total``: wall time of ``learn`` / seed-steps;
 - ``collection``: time inside ``collect_rollouts`` (environment step, exploration action, buffer, callbacks);
-- ``update``: time inside the gradient steps (``TD3X.train``, or ``SeedStackedMlpUpdate.train``);
+- ``update``: time inside the gradient steps (``TD3X.train``, or ``SeedBatch._train_together``);
 - ``products``: self time of the matrix products (``aten::mm``, ``addmm``, ``bmm``, ``baddbmm``), from the torch
   profiler over a separate window of the same length.
 
@@ -36,7 +36,6 @@ from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from torch.profiler import ProfilerActivity, profile
 
 from sb3_td3x import TD3X, SeedBatch
-from sb3_td3x.td3x.update_paths.seeds import SeedStackedMlpUpdate
 
 PRODUCTS = ("aten::mm", "aten::addmm", "aten::bmm", "aten::baddbmm")
 
@@ -84,7 +83,7 @@ class Timers:
     def __enter__(self) -> Timers:
         self.wrap(OffPolicyAlgorithm, "collect_rollouts", "collection")
         self.wrap(TD3X, "train", "update")
-        self.wrap(SeedStackedMlpUpdate, "train", "update")
+        self.wrap(SeedBatch, "_train_together", "update")
         return self
 
     def __exit__(self, *exc: object) -> None:

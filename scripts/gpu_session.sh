@@ -36,7 +36,7 @@ if [ "$part" = measure ]; then
   # 1. The GPU test layer, then every test that names CUDA, a device or graphs.
   timeout 170 python3 -m pytest -q -p no:cacheprovider -n 6 --timeout 160 -rs tests/gpu \
     tests/unit/test_acceleration.py tests/drop_in/test_drop_in_predict.py tests/drop_in/test_drop_in_save_load.py \
-    tests/equivalence/test_seed_stack.py > "$OUT/tests_cuda.txt" 2>&1
+    tests/equivalence/test_mlp_update_seeds.py > "$OUT/tests_cuda.txt" 2>&1
   echo "tests_cuda rc=$?" >> "$OUT/tests_cuda.txt"
   # 2. TD3X (default, then cuda_graph=True) against SB3's TD3 on the GPU, each pair in one process, chunks alternated.
   timeout 170 python3 benchmarks/throughput.py --env Ant-v5 HalfCheetah-v5 --chunks 3 --chunk-steps 1000 \

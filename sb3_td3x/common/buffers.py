@@ -199,11 +199,17 @@ class TensorReplayBuffer(ReplayBuffer):
             return self._gather(batch_inds, env_inds, env)
         # numpy's randint(0, span) draws what SB3's randint(0, upper) / randint(1, buffer_size) draw.
         offset, span = self._valid_range()
-        np_inds = (offset + np.random.randint(0, span, size=batch_size)) % self.buffer_size
+        np_inds = (offset + self._np_random().randint(0, span, size=batch_size)) % self.buffer_size
         return self._get_samples(np_inds, env=env)
 
+    def _np_random(self) -> Any:
+        """The numpy generator indices are drawn from: the owning model's stream (``TD3X.random_streams``, numpy's
+        global generator unless detached), else numpy's global one."""
+        streams = self.__dict__.get("random_streams")
+        return np.random if streams is None else streams.numpy
+
     def _get_samples(self, batch_inds: np.ndarray | th.Tensor, env: VecNormalize | None = None) -> ReplayBufferSamples:
-        env_inds = np.random.randint(0, high=self.n_envs, size=(len(batch_inds),))
+        env_inds = self._np_random().randint(0, high=self.n_envs, size=(len(batch_inds),))
         return self._gather(th.as_tensor(batch_inds, device=self._device), th.as_tensor(env_inds, device=self._device), env)
 
     def _gather(self, batch_inds: th.Tensor, env_inds: th.Tensor, env: VecNormalize | None) -> ReplayBufferSamples:
@@ -242,7 +248,7 @@ class TensorReplayBuffer(ReplayBuffer):
             if state.get(name) is not None:
                 state[name] = state[name].cpu()
         state["_device"] = th.device("cpu")
-        # Views and static sampling bounds belong to this process's storage and graphs; the loader sets them up again.
-        for name in ("_views", "_static_offset", "_static_span"):
+        # Views, static sampling bounds and the model's streams belong to this process; the loader sets them up again.
+        for name in ("_views", "_static_offset", "_static_span", "random_streams"):
             state.pop(name, None)
         return state

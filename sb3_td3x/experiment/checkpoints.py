@@ -25,7 +25,6 @@ import json
 import logging
 import os
 import pickle
-import random
 import shutil
 import time
 import warnings
@@ -42,6 +41,7 @@ from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecNormalize
 
+from sb3_td3x.common.random_streams import RandomStreams
 from sb3_td3x.experiment.errors import ConfigError, RunFilesNotWritten
 
 log = logging.getLogger(__name__)
@@ -401,22 +401,18 @@ def _digest(path: Path) -> str:
 
 
 # Random number generators -------------------------------------------------------------------------------------------
+def _streams(model: OffPolicyAlgorithm) -> RandomStreams:
+    """The generators ``model`` draws from: its own streams (TD3X), else the global generators (SB3's algorithms)."""
+    streams = getattr(model, "random_streams", None)
+    return streams if isinstance(streams, RandomStreams) else RandomStreams(model.device)
+
+
 def _rng_state(model: OffPolicyAlgorithm) -> dict[str, Any]:
-    return {
-        "python": random.getstate(),
-        "numpy": np.random.get_state(),
-        "torch": torch.get_rng_state(),
-        "torch_cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None,
-        "action_space": model.action_space.np_random.bit_generator.state,
-    }
+    return {**_streams(model).state(), "action_space": model.action_space.np_random.bit_generator.state}
 
 
 def _set_rng_state(model: OffPolicyAlgorithm, rng: dict[str, Any]) -> None:
-    random.setstate(rng["python"])
-    np.random.set_state(rng["numpy"])
-    torch.set_rng_state(rng["torch"])
-    if rng["torch_cuda"] is not None and torch.cuda.is_available():
-        torch.cuda.set_rng_state_all(rng["torch_cuda"])
+    _streams(model).set_state(rng)
     model.action_space.np_random.bit_generator.state = rng["action_space"]
 
 

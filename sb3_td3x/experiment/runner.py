@@ -23,6 +23,7 @@ from typing import Any
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from sb3_td3x.common.random_streams import RandomStreams, detached_streams
 from sb3_td3x.common.redaction import redact
 from sb3_td3x.experiment.algos import algorithm_class, build_algorithm
 from sb3_td3x.experiment.callbacks import (
@@ -52,7 +53,6 @@ from sb3_td3x.experiment.resume import check_resume, saved_config
 from sb3_td3x.experiment.schemas import check_config, public_config
 from sb3_td3x.experiment.statistics import STATISTICS, seed_statistic
 from sb3_td3x.td3x.seed_batch import SeedBatch, acting_as, current_seed
-from sb3_td3x.td3x.update_paths.seeds import GlobalRandomState
 
 log = logging.getLogger(__name__)
 
@@ -487,14 +487,14 @@ def _run_seeds(
     seeds = [int(s) for s in cfg.seeds]
     dirs = seed_run_dirs(cfg)
     runs: list[_Run] = []
-    states: list[GlobalRandomState] = []
+    streams: list[RandomStreams] = []
     handlers: list[logging.Handler] = []
     if cfg.resume is not None and not any(find_checkpoint(checkpoint_dir(d, LAST)) for d in dirs):
         raise ConfigError(
             f"resume={cfg.resume}: none of the batch's seed folders ({', '.join(map(str, dirs))}) has a checkpoint, "
             "so there is nothing to resume; start the batch again without resume=."
         )
-    caller = GlobalRandomState.capture()
+    caller = RandomStreams().state()
     try:
         for index, (seed, run_dir) in enumerate(zip(seeds, dirs)):
             seed_cfg = OmegaConf.create(OmegaConf.to_container(cfg, resolve=False))
@@ -510,9 +510,9 @@ def _run_seeds(
                 handlers.append(handler)
             with acting_as(index):
                 runs.append(_prepare(seed_cfg, restart=cfg.resume is not None))
-                # Where this seed's lone run stands when it calls learn(): its random stream from now on.
-                states.append(GlobalRandomState.capture(runs[-1].model.device))
-        caller.restore()
+                # Where this seed's lone run stands when it calls learn(): its random streams from now on.
+                streams.append(detached_streams(runs[-1].model))
+        RandomStreams().set_state(caller)
         reports = _SeedReports(seeds, runs, statistic, report, report_seeds)
         for index, run in enumerate(runs):
             assert run.evaluation is not None
@@ -522,7 +522,7 @@ def _run_seeds(
         errors: dict[int, BaseException] = {}
         if training:
             batch = SeedBatch.from_models(
-                [runs[i].model for i in training], [states[i] for i in training], [seeds[i] for i in training]
+                [runs[i].model for i in training], [streams[i] for i in training], [seeds[i] for i in training]
             )
             reason = batch.why_not_stacked()
             log.info(
@@ -560,7 +560,7 @@ def _run_seeds(
         _log_seed_aggregate(dirs, seeds, finals, statistic, value)
         return value
     finally:
-        caller.restore()
+        RandomStreams().set_state(caller)
         for run in runs:
             _close(run)
         for handler in handlers:

@@ -1,4 +1,4 @@
-"""Many seeds in one process: N independent runs trained together, each computing what it computes alone (issue 17).
+"""Many seeds in one process: N runs of one configuration trained together, seed ``i`` computing its lone run.
 
 .. code-block:: python
 
@@ -9,33 +9,16 @@
     batch[2].save("hopper_seed2")             # seed 2 is a full TD3X: predict, save, evaluate_policy, TD3X.load
     batch.update_path, batch.update_reason     # how the gradient steps ran, and why
 
-**The contract.** Seed ``i`` of a batch computes what ``make_model(seeds[i]).learn(...)`` computes alone: the same
-actions, transitions, sampled indices, noises, and the same weights to float rounding. Each seed keeps its own
-global random state (Python's, numpy's and torch's generators, :class:`~.update_paths.seeds.GlobalRandomState`),
-captured right after its model is built, where its lone run would stand, and everything of that seed runs with its
-state swapped in: its environment steps and exploration noise, its callbacks (evaluations, checkpoints), its
-sampling and its target smoothing noise. So whatever the user's code draws, and from whichever global generator, it
-draws what the lone run draws.
+Each round, every seed collects its rollout (its model's ``collect_rollouts``), then the seeds' gradient steps run
+through one :class:`~.update_paths.mlp.MlpUpdate` of all their models (``"seed_stacked_mlp"``) where it trains every
+one of them, else through each model's own ``train()`` (``"per_seed"``, with the reason). On a CPU seed ``i`` then
+computes its lone run's numbers bit for bit; on a GPU, where the seeds share each product, to float rounding.
 
-**What runs together.** The loop is SB3's ``OffPolicyAlgorithm.learn``, one round per rollout: every seed collects
-its rollout (``model.collect_rollouts``, the model's own), then the seeds that train do their gradient steps. When
-all N train the same number of steps with the same batch size, and
-:class:`~.update_paths.seeds.SeedStackedMlpUpdate` applies to them (their lone update would be ``MlpUpdate``: SB3's
-ReLU MLPs, the hooks of steps 5 to 13 as written, fp32, shared ``gamma``, smoothing and clipped double-Q settings),
-those steps run as one batched update over a seed axis (``update_path == "seed_stacked_mlp"``). Otherwise each seed
-runs its own ``train()``, one after the other, with its random state (``"per_seed"``): an overridden loss, a custom
-network, ``compile_update``, ``cuda_graph``, another algorithm (SB3's ``TD3``), one seed alone, or a round in which
-the seeds want different numbers of gradient steps (``train_freq`` in episodes). ``update_reason`` says why, and
-each model's logger gets the line at its first gradient step.
-
-Where it would not run the user's code, it refuses: a model whose class overrides ``learn`` (the batch runs SB3's
-loop itself, calling each model's ``collect_rollouts``, callbacks and ``train``); an overridden ``train`` makes each
-seed train alone.
-
-**Limits.** The environments step one seed after the other (a batch saves per-step overhead in the update, not in
-the simulator). Each seed's callbacks must be its own objects (one list per seed). A seed whose model raises stops
-the batch (``keep_going=False``, the default), or only itself (``keep_going=True``: the others go on and
-:attr:`SeedBatch.errors` holds what it raised).
+**Random numbers.** Each model draws from its own streams (:class:`~sb3_td3x.common.random_streams.RandomStreams`),
+detached right after ``make_model`` built it, where its lone run stands. Code that may draw from the global generators
+itself runs with its seed's streams installed as them: a seed's own ``train()``, and each round of a seed whose
+model is not a TD3X, or whose model, policy, action noise (other than SB3's ``NormalActionNoise``), callbacks or
+environments are classes from outside SB3, gymnasium and this package. Other rounds swap nothing.
 """
 
 from __future__ import annotations
@@ -50,11 +33,16 @@ from typing import Any
 
 import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.noise import NormalActionNoise
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.type_aliases import MaybeCallback
 
+from sb3_td3x.common import denormals
+from sb3_td3x.common.buffers import TensorReplayBuffer
+from sb3_td3x.common.random_streams import RandomStreams, detached_streams
+from sb3_td3x.td3x.hooks import changed_hooks
 from sb3_td3x.td3x.td3x import TD3X
-from sb3_td3x.td3x.update_paths.seeds import GlobalRandomState, SeedRandomStreams, SeedStackedMlpUpdate
+from sb3_td3x.td3x.update_paths.mlp import MlpUpdate
 
 log = logging.getLogger(__name__)
 
@@ -75,6 +63,8 @@ def acting_as(index: int) -> Iterator[None]:
 
 SEED_STACKED = "seed_stacked_mlp"
 PER_SEED = "per_seed"
+# Packages whose code draws only from the model's streams (or from generators of its own, as gymnasium's envs).
+_OWN_STREAMS_CODE = ("stable_baselines3", "gymnasium", "sb3_td3x")
 
 
 @dataclass
@@ -93,16 +83,14 @@ class SeedBatch:
     """N runs of one configuration, one per seed, trained together in this process (see the module's docstring).
 
     :param make_model: builds seed ``seed``'s model, as its lone run would (``TD3X(..., seed=seed)`` on its own
-        environment). It is called once per seed, in order, and the global random state it leaves is that seed's
-        random stream from then on
+        environment). It is called once per seed, in order; the caller's global random state is put back after
     :param seeds: the seeds, distinct
-    :param fuse: passed to :class:`~.update_paths.seeds.SeedStackedMlpUpdate`
     """
 
-    def __init__(self, make_model: Callable[[int], OffPolicyAlgorithm], seeds: Sequence[int], fuse: bool = True):
+    def __init__(self, make_model: Callable[[int], OffPolicyAlgorithm], seeds: Sequence[int]):
         seeds = self._check_seeds(seeds)
-        models, states = [], []
-        caller = GlobalRandomState.capture()
+        models, streams = [], []
+        caller = RandomStreams().state()
         try:
             for seed in seeds:
                 model = make_model(seed)
@@ -112,29 +100,30 @@ class SeedBatch:
                         "return one off-policy model (e.g. lambda seed: TD3X('MlpPolicy', env_id, seed=seed))."
                     )
                 models.append(model)
-                states.append(GlobalRandomState.capture(model.device))
+                streams.append(detached_streams(model))
         finally:
-            caller.restore()
-        self._setup(models, states, seeds, fuse)
+            RandomStreams().set_state(caller)
+        self._setup(models, streams, seeds)
 
     @classmethod
     def from_models(
         cls,
         models: Sequence[OffPolicyAlgorithm],
-        random_states: Sequence[GlobalRandomState],
+        random_streams: Sequence[RandomStreams] | None = None,
         seeds: Sequence[int] | None = None,
-        fuse: bool = True,
     ) -> SeedBatch:
         """A batch of models built elsewhere (loaded from checkpoints, ...).
 
-        :param random_states: each model's global random state where its lone run stands
-            (:meth:`GlobalRandomState.capture` right after building or loading it, before anything else draws)
+        :param random_streams: each model's streams, detached where its lone run stands
+            (:func:`~sb3_td3x.common.random_streams.detached_streams` right after building or loading it); default:
+            detached now
         :param seeds: their seeds (default: each model's ``seed``)
         """
         batch = cls.__new__(cls)
         if seeds is None:
             seeds = [int(m.seed) if m.seed is not None else i for i, m in enumerate(models)]
-        batch._setup(list(models), list(random_states), cls._check_seeds(seeds), fuse)
+        streams = list(random_streams) if random_streams is not None else [detached_streams(m) for m in models]
+        batch._setup(list(models), streams, cls._check_seeds(seeds))
         return batch
 
     @staticmethod
@@ -148,9 +137,9 @@ class SeedBatch:
             raise ValueError(f"SeedBatch: seeds {seeds} repeat a seed; each seed is one run, give each once.")
         return [int(s) for s in seeds]
 
-    def _setup(self, models: list[OffPolicyAlgorithm], states: list[GlobalRandomState], seeds: list[int], fuse: bool) -> None:
-        if len(models) != len(seeds) or len(states) != len(seeds):
-            raise ValueError(f"SeedBatch: {len(models)} models, {len(states)} random states and {len(seeds)} seeds.")
+    def _setup(self, models: list[OffPolicyAlgorithm], streams: list[RandomStreams], seeds: list[int]) -> None:
+        if len(models) != len(seeds) or len(streams) != len(seeds):
+            raise ValueError(f"SeedBatch: {len(models)} models, {len(streams)} random streams and {len(seeds)} seeds.")
         if len({id(m) for m in models}) != len(models):
             raise ValueError("SeedBatch: a model is given twice; each seed needs its own model.")
         envs = [m.get_env() for m in models]
@@ -158,14 +147,15 @@ class SeedBatch:
             raise ValueError("SeedBatch: two seeds share one environment; each seed needs its own (build it in make_model).")
         self.models = models
         self.seeds = seeds
-        self.fuse = fuse
-        self.streams = SeedRandomStreams(states, models[0].device)
+        #: Each seed's random streams (its model's own for a TD3X).
+        self.streams = streams
         #: How the last ``learn()`` ran the gradient steps ("seed_stacked_mlp" or "per_seed") and why.
         self.update_path: str | None = None
         self.update_reason: str | None = None
         #: Seed index -> the exception that stopped it (``learn(keep_going=True)``).
         self.errors: dict[int, BaseException] = {}
-        self._stacked: SeedStackedMlpUpdate | None = None
+        self._update: MlpUpdate | None = None
+        self._globals = [True] * len(models)  # whose rounds run with their streams installed (set by learn)
         self._announced: set[int] = set()
         self._on_error: Callable[[int, BaseException], None] | None = None
 
@@ -184,16 +174,15 @@ class SeedBatch:
         return f"SeedBatch({type(self.models[0]).__name__}, seeds={self.seeds}, update_path={self.update_path!r})"
 
     @contextlib.contextmanager
-    def seed_context(self, index: int) -> Iterator[OffPolicyAlgorithm]:
-        """Seed ``index``'s random state as the global one inside (and :data:`current_seed` set); the caller's
-        state is put back at the end. For code that must draw as seed ``index``'s lone run would."""
-        with self.streams.kept_apart(), self._seed(index):
+    def seed_context(self, index: int, install: bool = True) -> Iterator[OffPolicyAlgorithm]:
+        """Code run as seed ``index``'s (:data:`current_seed` set), with its streams as the global generators
+        (``install``); the caller's global state is put back at the end."""
+        with acting_as(index), (self.streams[index].installed() if install else contextlib.nullcontext()):
             yield self.models[index]
 
-    @contextlib.contextmanager
-    def _seed(self, index: int) -> Iterator[None]:
-        with acting_as(index), self.streams.seed(index):
-            yield
+    def _globals_for(self, index: int) -> contextlib.AbstractContextManager:
+        """Seed ``index``'s streams installed when its code may draw from the global generators, else nothing."""
+        return self.streams[index].installed() if self._globals[index] else contextlib.nullcontext()
 
     def save(self, directory: str | Path) -> list[Path]:
         """Save each seed's model as ``<directory>/seed<seed>.zip`` (each loads with ``TD3X.load``)."""
@@ -208,16 +197,20 @@ class SeedBatch:
 
     # ------------------------------------------------------------------------------------------------------------
     def why_not_stacked(self) -> str | None:
-        """Why the gradient steps cannot run as one batched update (then each seed trains alone), or None."""
+        """Why the gradient steps cannot run through one shared update (then each seed trains alone), or None."""
         if len(self.models) == 1:
             return "one seed: its own learn()"
         not_td3x = [f"model {i} is a {type(m).__name__}" for i, m in enumerate(self.models) if not isinstance(m, TD3X)]
         if not_td3x:
-            return "the batched update is TD3X's: " + "; ".join(not_td3x)
+            return "the shared update is TD3X's: " + "; ".join(not_td3x)
         batch_sizes = {m.batch_size for m in self.models}
         if len(batch_sizes) > 1:
             return f"the seeds' batch sizes differ ({sorted(batch_sizes)})"
-        return SeedStackedMlpUpdate.why_not_together(self.models)  # type: ignore[arg-type]
+        # The shared update stands in for train(): an override of it must run.
+        own_train = [f"model {i}: {r}" for i, m in enumerate(self.models) for r in changed_hooks(m, ("train", "_train"))]
+        if own_train:
+            return "; ".join(own_train)
+        return MlpUpdate.why_not_together(self.models)  # type: ignore[arg-type]
 
     def _per_seed_callbacks(self, callback: Sequence[MaybeCallback] | None) -> list[MaybeCallback]:
         if callback is None:
@@ -262,70 +255,75 @@ class SeedBatch:
         :param on_error: with ``keep_going``, called as ``on_error(index, exception)`` when a seed stops
         """
         callbacks = self._per_seed_callbacks(callback)
+        self._refuse_own_learn()
+        totals = self._per_seed_values("total_timesteps", total_timesteps)
+        resets = self._per_seed_values("reset_num_timesteps", reset_num_timesteps)
+        self.errors, self._on_error = {}, on_error
+        self._choose_update()
+        if len(self.models) == 1:  # one seed: its own learn()
+            try:
+                with self.seed_context(0) as model:
+                    model.learn(totals[0], callbacks[0], log_interval, tb_log_name or type(model).__name__, resets[0], progress_bar)
+            except Exception as error:
+                self._fail(0, error, keep_going)
+            return self
+        # SB3's learn() runs one model to its end, and the shared update needs every seed's rollout first: so the
+        # batch runs that loop's body (_setup_learn, collect_rollouts, train) round by round.
+        runs = [
+            self._start(i, totals[i], callbacks[i], resets[i], tb_log_name, progress_bar, log_interval)
+            for i in range(len(self.models))
+        ]
+        active = [run for run in runs if not run.finished]
+        while active:
+            self._train([(run, steps) for run in active if (steps := self._collect(run, log_interval, keep_going))], keep_going)
+            active = [r for r in active if not (r.finished or r.failed) and r.model.num_timesteps < r.total_timesteps]
+        for run in runs:
+            if not run.failed:
+                with self.seed_context(run.index, install=self._globals[run.index]):
+                    run.callback.on_training_end()
+        return self
+
+    def _refuse_own_learn(self) -> None:
         if len(self.models) > 1 and (changed := [r for i, m in enumerate(self.models) if (r := _learn_changed(i, m))]):
             raise ValueError(
                 f"SeedBatch.learn runs SB3's learn loop for every seed, so it would not run {'; '.join(changed)}. "
                 "Move that code into a callback (or an override of collect_rollouts or train, which the batch calls), "
                 "or train those seeds alone."
             )
-        totals = self._per_seed_values("total_timesteps", total_timesteps)
-        resets = self._per_seed_values("reset_num_timesteps", reset_num_timesteps)
-        self.errors = {}
-        self._on_error = on_error
-        if len(self.models) == 1:  # one seed: its own learn(), today's TD3X to the line
-            self._choose_update()
-            try:
-                with self.seed_context(0) as model:
-                    name = tb_log_name or type(model).__name__
-                    model.learn(totals[0], callbacks[0], log_interval, name, resets[0], progress_bar)
-            except Exception as error:
-                self._fail(0, error, keep_going)
-            return self
-        runs: list[_SeedRun] = []
-        with self.streams.kept_apart():
-            for i, model in enumerate(self.models):
-                with self._seed(i):
-                    name = tb_log_name or type(model).__name__
-                    total, cb = model._setup_learn(totals[i], callbacks[i], resets[i], name, progress_bar)
-                    cb.on_training_start({"self": model, "total_timesteps": total, "log_interval": log_interval}, globals())
-                runs.append(_SeedRun(i, model, total, cb, finished=model.num_timesteps >= total))
-            self._choose_update()
-            active = [run for run in runs if not run.finished]
-            while active:
-                wants: list[tuple[_SeedRun, int]] = []
-                for run in active:
-                    model = run.model
-                    try:
-                        with self._seed(run.index):
-                            rollout = model.collect_rollouts(
-                                model.env,  # type: ignore[arg-type]
-                                train_freq=model.train_freq,  # type: ignore[arg-type]
-                                action_noise=model.action_noise,
-                                callback=run.callback,
-                                learning_starts=model.learning_starts,
-                                replay_buffer=model.replay_buffer,  # type: ignore[arg-type]
-                                log_interval=log_interval,
-                            )
-                    except Exception as error:
-                        self._fail(run.index, error, keep_going)
-                        run.failed = True
-                        continue
-                    if not rollout.continue_training:
-                        run.finished = True
-                        continue
-                    if model.num_timesteps > 0 and model.num_timesteps > model.learning_starts:
-                        steps = model.gradient_steps if model.gradient_steps >= 0 else rollout.episode_timesteps
-                        if steps > 0:
-                            wants.append((run, steps))
-                self._train(wants, keep_going)
-                for run in active:
-                    run.finished = run.finished or run.model.num_timesteps >= run.total_timesteps
-                active = [run for run in active if not (run.finished or run.failed)]
-            for run in runs:
-                if not run.failed:
-                    with self._seed(run.index):
-                        run.callback.on_training_end()
-        return self
+
+    def _start(self, index: int, total: int, callback: MaybeCallback, reset: bool, name: str | None, progress_bar: bool, log_interval: int) -> _SeedRun:
+        """SB3's ``learn()`` up to its loop, for seed ``index``."""
+        model = self.models[index]
+        with self.seed_context(index):
+            total, cb = model._setup_learn(total, callback, reset, name or type(model).__name__, progress_bar)
+            cb.on_training_start({"self": model, "total_timesteps": total, "log_interval": log_interval}, globals())
+        self._globals[index] = _may_draw_from_globals(model, cb)
+        return _SeedRun(index, model, total, cb, finished=model.num_timesteps >= total)
+
+    def _collect(self, run: _SeedRun, log_interval: int, keep_going: bool) -> int:
+        """One rollout of ``run``'s seed, as SB3's loop collects it; the gradient steps it then wants (0: none)."""
+        model = run.model
+        try:
+            with self.seed_context(run.index, install=self._globals[run.index]):
+                rollout = model.collect_rollouts(
+                    model.env,  # type: ignore[arg-type]
+                    train_freq=model.train_freq,  # type: ignore[arg-type]
+                    action_noise=model.action_noise,
+                    callback=run.callback,
+                    learning_starts=model.learning_starts,
+                    replay_buffer=model.replay_buffer,  # type: ignore[arg-type]
+                    log_interval=log_interval,
+                )
+        except Exception as error:
+            self._fail(run.index, error, keep_going)
+            run.failed = True
+            return 0
+        if not rollout.continue_training:
+            run.finished = True
+            return 0
+        if model.num_timesteps > 0 and model.num_timesteps > model.learning_starts:
+            return model.gradient_steps if model.gradient_steps >= 0 else rollout.episode_timesteps
+        return 0
 
     def _per_seed_values(self, name: str, value: Any) -> list[Any]:
         if not isinstance(value, (list, tuple)):
@@ -346,53 +344,99 @@ class SeedBatch:
         log.warning("SeedBatch: seed %d stopped: %s: %s", self.seeds[index], type(error).__name__, error)
 
     def _choose_update(self) -> None:
-        """The update of this ``learn()`` call: batched where :meth:`why_not_stacked` allows it."""
+        """The update of this ``learn()`` call: shared where :meth:`why_not_stacked` allows it."""
         reason = self.why_not_stacked()
-        self._stacked = None
+        self._update = None
         if reason is None:
-            self._stacked = SeedStackedMlpUpdate(self.models, self.streams, fuse=self.fuse)  # type: ignore[arg-type]
+            first = self.models[0]
+            self._update = MlpUpdate(self.models, compile=first.compile_update, around=self._globals_for)  # type: ignore[arg-type]
             self.update_path = SEED_STACKED
-            self.update_reason = (
-                f"SeedStackedMlpUpdate: the {len(self.models)} seeds' gradient steps as one batched update (each "
-                "seed's lone update is MlpUpdate)"
-            )
+            self.update_reason = f"MlpUpdate of the {len(self.models)} seeds' models (each seed's lone update is MlpUpdate)"
         else:
             self.update_path, self.update_reason = PER_SEED, f"each seed trains alone: {reason}"
         self._announced = set()
 
-    def _announce(self, index: int, path: str, reason: str) -> None:
+    def _announce(self, index: int, path: str) -> None:
         """The update line in seed ``index``'s log, once per ``learn()`` call."""
         if index in self._announced:
             return
         self._announced.add(index)
         model = self.models[index]
         if path == SEED_STACKED and isinstance(model, TD3X):
-            model.update_path, model.update_reason = path, reason
-        model.logger.info(f"seed batch: {path} ({reason})")
+            model.update_path, model.update_reason = path, self.update_reason
+        model.logger.info(f"seed batch: {path} ({self.update_reason})")
 
     def _train(self, wants: list[tuple[_SeedRun, int]], keep_going: bool) -> None:
+        """The gradient steps of the seeds that want them: together when all want the same number, else each alone."""
         if not wants:
             return
         steps = {n for _, n in wants}
-        if self._stacked is not None and len(wants) == len(self.models) and len(steps) == 1:
+        if self._update is not None and len(wants) == len(self.models) and len(steps) == 1:
             for run, _ in wants:
-                self._announce(run.index, SEED_STACKED, self.update_reason or "")
-            self._stacked.train(gradient_steps=steps.pop(), batch_size=self.models[0].batch_size)
+                self._announce(run.index, SEED_STACKED)
+            self._train_together(steps.pop())
             return
-        if self._stacked is not None:  # this round only: the seeds want different steps
-            reason = (
-                f"this round {len(wants)} of {len(self.models)} seeds train, "
-                f"{'/'.join(str(n) for _, n in wants)} gradient steps: each alone"
-            )
-            log.debug("SeedBatch: %s", reason)
         for run, n in wants:
-            self._announce(run.index, PER_SEED, self.update_reason or "")
+            self._announce(run.index, PER_SEED)
             try:
-                with self._seed(run.index):
+                with self.seed_context(run.index):
                     run.model.train(batch_size=run.model.batch_size, gradient_steps=n)
             except Exception as error:
                 self._fail(run.index, error, keep_going)
                 run.failed = True
+
+    def _train_together(self, gradient_steps: int) -> None:
+        """Every model's ``train(gradient_steps)`` (TD3X's steps and bookkeeping, each model's own), the updates
+        through the shared ``MlpUpdate``."""
+        assert self._update is not None
+        models = self.models
+        infos: list[tuple[list[Any], list[Any]]] = [([], []) for _ in models]
+        for i, m in enumerate(models):
+            with acting_as(i), self._globals_for(i):
+                m.policy.set_training_mode(True)
+                m._update_learning_rate([m.actor.optimizer, m.critic.optimizer])  # type: ignore[attr-defined]
+        with denormals.flush_denormals(models[0].device.type == "cpu" and models[0].flush_denormals):  # type: ignore[attr-defined]
+            for _ in range(gradient_steps):
+                batches, update_actor = [], []
+                for i, m in enumerate(models):
+                    with self._globals_for(i):
+                        m._n_updates += 1
+                        update_actor.append(m.should_update_actor(m._n_updates))  # type: ignore[attr-defined]
+                        batches.append(m.sample_batch(m.batch_size))  # type: ignore[attr-defined]
+                for i, (critic_info, actor_info) in enumerate(self._update.step(batches, update_actor)):
+                    infos[i][0].append(critic_info)
+                    if update_actor[i]:
+                        models[i]._n_actor_updates += 1  # type: ignore[attr-defined]
+                        infos[i][1].append(actor_info)
+        for i, m in enumerate(models):
+            with acting_as(i), self._globals_for(i):
+                m._log_train_infos(*infos[i])  # type: ignore[attr-defined]
+
+
+def _may_draw_from_globals(model: OffPolicyAlgorithm, callback: BaseCallback) -> bool:
+    """Whether code of ``model``'s rounds may draw from the global generators itself, not from its streams (see the
+    module's docstring): then its streams are installed around them."""
+    if not isinstance(model, TD3X) or not isinstance(model.replay_buffer, TensorReplayBuffer):
+        return True
+    if model.action_noise is not None and type(model.action_noise) is not NormalActionNoise:
+        return True
+    parts = _parts([model, model.policy, callback, model.get_env()])
+    return any(type(part).__module__.split(".")[0] not in _OWN_STREAMS_CODE for part in parts)
+
+
+def _parts(objects: list[Any]) -> list[Any]:
+    """``objects`` and what they wrap or hold: callbacks in lists and events, evaluation envs, env wrappers."""
+    seen: dict[int, Any] = {}
+    todo = list(objects)
+    while todo:
+        obj = todo.pop()
+        if obj is None or id(obj) in seen:
+            continue
+        seen[id(obj)] = obj
+        for name in ("callbacks", "callback", "callback_on_new_best", "callback_after_eval", "eval_env", "venv", "envs", "env"):
+            value = obj.__dict__.get(name) if hasattr(obj, "__dict__") else None
+            todo += list(value) if isinstance(value, (list, tuple)) else [value]
+    return list(seen.values())
 
 
 def _learn_changed(index: int, model: OffPolicyAlgorithm) -> str | None:

@@ -14,7 +14,7 @@ import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.base_class import maybe_make_env
 from stable_baselines3.common.buffers import ReplayBuffer
-from stable_baselines3.common.noise import ActionNoise
+from stable_baselines3.common.noise import ActionNoise, NormalActionNoise
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, ReplayBufferSamples, Schedule, TensorDict
@@ -22,6 +22,7 @@ from stable_baselines3.common.utils import FloatSchedule, get_parameters_by_name
 
 from sb3_td3x.common import denormals
 from sb3_td3x.common.buffers import TensorReplayBuffer
+from sb3_td3x.common.random_streams import RandomStreams
 from sb3_td3x.td3x.hooks import HOOK_NAMES
 from sb3_td3x.td3x.policies import CnnPolicy, MlpPolicy, MultiInputPolicy, TD3XPolicy
 from sb3_td3x.td3x.update_paths.choose import choose_update
@@ -222,6 +223,10 @@ class TD3X(OffPolicyAlgorithm):
     # ------------------------------------------------------------------------------------------------------------
     # Set-up (steps 1-3: replay buffer, actor, critics and their targets)
     # ------------------------------------------------------------------------------------------------------------
+    def _link_replay_buffer_streams(self) -> None:
+        if isinstance(self.replay_buffer, TensorReplayBuffer):
+            self.replay_buffer.random_streams = self.random_streams  # step 4's indices
+
     def _check_cuda_graph_setup(self) -> None:
         if not self.cuda_graph:
             return
@@ -322,6 +327,9 @@ class TD3X(OffPolicyAlgorithm):
         if optimizer_kwargs or "optimizer_kwargs" in self.policy_kwargs:
             self.policy_kwargs["optimizer_kwargs"] = optimizer_kwargs
         super()._setup_model()
+        # The generators TD3X's own code draws from: the global ones, as SB3's, until a SeedBatch detaches them.
+        self.random_streams = RandomStreams(self.device)
+        self._link_replay_buffer_streams()
         if self.cuda_graph:
             if not isinstance(self.replay_buffer, TensorReplayBuffer):
                 raise ValueError(
@@ -378,6 +386,11 @@ class TD3X(OffPolicyAlgorithm):
     # The training loop: a short list of named steps
     # ------------------------------------------------------------------------------------------------------------
     def train(self, gradient_steps: int, batch_size: int = 100) -> None:
+        # Detached streams (a SeedBatch's) as the global ones, for hooks that draw from those.
+        with self.random_streams.installed():
+            self._train(gradient_steps, batch_size)
+
+    def _train(self, gradient_steps: int, batch_size: int) -> None:
         # Switch to train mode (this affects batch norm / dropout)
         self.policy.set_training_mode(True)
         self._update_learning_rate([self.actor.optimizer, self.critic.optimizer])
@@ -583,11 +596,12 @@ class TD3X(OffPolicyAlgorithm):
         from the actor's normalised output by ``DirectMlpActor`` instead of ``predict()`` followed by
         ``scale_action()``, where that computes the same (:meth:`_exploration`); SB3's own method otherwise.
         """
+        action_noise = self._own_stream_noise(action_noise)
         if self.num_timesteps < learning_starts or not isinstance(self._last_obs, np.ndarray):
-            return super()._sample_action(learning_starts, action_noise, n_envs)
+            return super()._sample_action(learning_starts, action_noise, n_envs)  # type: ignore[arg-type]
         actor = self._exploration()[0]
         if actor is None:  # the actor or the predict path is the user's: SB3's own
-            return super()._sample_action(learning_starts, action_noise, n_envs)
+            return super()._sample_action(learning_starts, action_noise, n_envs)  # type: ignore[arg-type]
         with th.no_grad():
             obs = th.as_tensor(self._last_obs, device=self.device).reshape(n_envs, *self.observation_space.shape)
             # (n_envs, *action_shape), in [-1, 1]
@@ -595,6 +609,13 @@ class TD3X(OffPolicyAlgorithm):
         if action_noise is not None:
             scaled_action = np.clip(scaled_action + action_noise(), -1, 1)
         return self.policy.unscale_action(scaled_action), scaled_action
+
+    def _own_stream_noise(self, noise: ActionNoise | None) -> Callable[[], np.ndarray] | None:
+        """SB3's ``NormalActionNoise`` drawn as it draws it, from the model's numpy stream instead of numpy's global
+        generator (the same one unless detached); any other noise as it is."""
+        if type(noise) is not NormalActionNoise:
+            return noise
+        return lambda: self.random_streams.numpy.normal(noise._mu, noise._sigma).astype(noise._dtype)
 
     def _exploration(self) -> tuple[Callable[[th.Tensor], th.Tensor] | None, str, str]:
         """The collection shortcut for pi(s), its name and why (chosen again when the actor is replaced): a
@@ -679,19 +700,21 @@ class TD3X(OffPolicyAlgorithm):
         reset_num_timesteps: bool = True,
         progress_bar: bool = False,
     ) -> SelfTD3X:
-        return super().learn(
-            total_timesteps=total_timesteps,
-            callback=callback,
-            log_interval=log_interval,
-            tb_log_name=tb_log_name,
-            reset_num_timesteps=reset_num_timesteps,
-            progress_bar=progress_bar,
-        )
+        with self.random_streams.installed():  # detached streams (a SeedBatch's model) as the global ones
+            return super().learn(
+                total_timesteps=total_timesteps,
+                callback=callback,
+                log_interval=log_interval,
+                tb_log_name=tb_log_name,
+                reset_num_timesteps=reset_num_timesteps,
+                progress_bar=progress_bar,
+            )
 
     def load_replay_buffer(self, path: Any, truncate_last_traj: bool = True) -> None:
         """SB3's ``load_replay_buffer``; with ``cuda_graph=True`` the new buffer samples on the device, and the
         graphs, captured on the old buffer's tensors, are captured again."""
         super().load_replay_buffer(path, truncate_last_traj)
+        self._link_replay_buffer_streams()
         if self.cuda_graph and isinstance(self.replay_buffer, TensorReplayBuffer):
             self.replay_buffer.enable_static_sampling()
         self._step_fn = self._step_fn_for = None
@@ -707,6 +730,7 @@ class TD3X(OffPolicyAlgorithm):
             "_step_fn",
             "_step_fn_for",
             "_exploration_choice",
+            "random_streams",
             "update_path",
             "update_reason",
             "exploration_path",

@@ -1,13 +1,11 @@
-"""SeedBatch (issue 17): N seeds trained in one process compute what N lone ``learn()`` calls compute.
+"""SeedBatch: N seeds trained in one process compute, bit for bit on a CPU, what N lone ``learn()`` calls compute.
 
 Each test builds the same models twice from one factory: once alone, ``make(seed).learn(...)`` one after the other,
-and once as a batch. Collection (exploration noise from numpy's global generator, random actions before
-``learning_starts``), sampling, the target smoothing noise and the weights must agree seed by seed, through the
-batched update (``seed_stacked_mlp``) and through the per-seed one (an overridden loss hook); and they must not when
-the seeds' random streams are shared or swapped.
+and once as a batch. Collection (exploration noise, random actions before ``learning_starts``), sampling, the target
+smoothing noise and the weights must be equal seed by seed, through the shared update (``seed_stacked_mlp``), through
+the per-seed one (an overridden loss hook), and with an action noise of the user's that draws from numpy's global
+generator; and they must differ when the seeds' random streams are shared or swapped.
 """
-
-import contextlib
 
 import numpy as np
 import pytest
@@ -17,7 +15,7 @@ from stable_baselines3.common.callbacks import BaseCallback, EvalCallback
 from stable_baselines3.common.noise import NormalActionNoise
 
 from sb3_td3x import TD3X, SeedBatch
-from sb3_td3x.td3x.update_paths.seeds import GlobalRandomState, SeedRandomStreams
+from sb3_td3x.common.random_streams import RandomStreams
 
 SEEDS = (0, 1, 2)
 STEPS = 450  # 350 gradient steps after learning_starts=100
@@ -31,13 +29,20 @@ class HuberTD3X(TD3X):
         return loss, {"critic_loss": loss.detach()}
 
 
-def factory(cls=TD3X, **kwargs):
+class GlobalNoise(NormalActionNoise):
+    """A user's action noise, drawing from numpy's global generator itself: the batch installs the seed's streams."""
+
+    def __call__(self):
+        return np.random.normal(self._mu, 2 * self._sigma).astype(self._dtype)
+
+
+def factory(cls=TD3X, noise=NormalActionNoise, **kwargs):
     def make(seed):
         options = {
             "learning_starts": 100,
             "batch_size": 64,
             "policy_kwargs": {"net_arch": [32, 32]},
-            "action_noise": NormalActionNoise(np.zeros(1), 0.1 * np.ones(1)),  # numpy's global generator
+            "action_noise": noise(np.zeros(1), 0.1 * np.ones(1)),
             **kwargs,
         }
         return cls("MlpPolicy", "Pendulum-v1", seed=seed, **options)
@@ -57,30 +62,40 @@ def differences(batch, lone):
     ]
 
 
-def assert_same_runs(batch, lone):
+def assert_same_runs(batch, lone, exact=True):
+    """The same transitions (collection is the lone run's) and weights: bit for bit, or (``exact=False``, against
+    another update) to float rounding."""
+    tolerance = {"rtol": 0, "atol": 0} if exact else {"rtol": 1e-4, "atol": 1e-5}
     for i, (model, alone) in enumerate(zip(batch, lone)):
         assert (model.num_timesteps, model._n_updates) == (alone.num_timesteps, alone._n_updates)
         pos, start = alone.replay_buffer.pos, alone.learning_starts
-        for field in ("observations", "actions", "rewards"):  # the same transitions: collection is the lone run's
+        for field in ("observations", "actions", "rewards"):
             ours, theirs = (np.asarray(getattr(m.replay_buffer, field)[:pos]) for m in (model, alone))
-            # The random actions before learning_starts to the bit; the actor's after it to float rounding.
-            np.testing.assert_array_equal(ours[:start], theirs[:start])
-            np.testing.assert_allclose(ours, theirs, rtol=1e-4, atol=1e-5, err_msg=f"seed {i} {field}")
+            np.testing.assert_array_equal(ours[:start], theirs[:start])  # random actions before learning_starts
+            np.testing.assert_allclose(ours, theirs, **tolerance, err_msg=f"seed {i} {field}")
         for (name, a), b in zip(alone.policy.state_dict().items(), model.policy.state_dict().values()):
-            th.testing.assert_close(b, a, rtol=1e-4, atol=1e-5, msg=lambda m, name=name, i=i: f"seed {i} {name}: {m}")
+            th.testing.assert_close(b, a, **tolerance, msg=lambda m, name=name, i=i: f"seed {i} {name}: {m}")
 
 
 @pytest.mark.parametrize(
-    ("cls", "path"), [(TD3X, "seed_stacked_mlp"), (HuberTD3X, "per_seed")], ids=["default", "overridden-critic_loss"]
+    ("cls", "noise", "path", "swaps"),
+    [
+        (TD3X, NormalActionNoise, "seed_stacked_mlp", False),
+        (HuberTD3X, NormalActionNoise, "per_seed", True),
+        (TD3X, GlobalNoise, "seed_stacked_mlp", True),
+    ],
+    ids=["default", "overridden-critic_loss", "noise-from-numpy-global"],
 )
-def test_a_batch_computes_the_lone_runs(cls, path):
-    make = factory(cls)
+def test_a_batch_computes_the_lone_runs_bit_for_bit(cls, noise, path, swaps):
+    make = factory(cls, noise)
     lone = lone_runs(make)
     caller = np.random.get_state()
     batch = SeedBatch(make, SEEDS).learn(STEPS)
     assert batch.update_path == path
     if cls is HuberTD3X:
         assert "critic_loss overridden by HuberTD3X" in batch.update_reason
+    # The default model's rounds swap no global state; a user's class or noise runs with the seed's streams installed.
+    assert batch._globals == [swaps] * len(SEEDS)
     assert all(m._n_updates == STEPS - 100 for m in batch)
     assert_same_runs(batch, lone)
     # The caller's global random state is as it was.
@@ -94,7 +109,7 @@ def test_the_batched_update_computes_what_the_hooks_compute_with_autograd():
     assert all(m.update_path == "autograd" for m in lone)
     batch = SeedBatch(factory(), SEEDS).learn(STEPS)
     assert batch.update_path == "seed_stacked_mlp"
-    assert_same_runs(batch, lone)
+    assert_same_runs(batch, lone, exact=False)
 
 
 def test_the_test_fails_when_the_math_differs():
@@ -105,21 +120,18 @@ def test_the_test_fails_when_the_math_differs():
         assert_same_runs(batch, lone)
 
 
-@contextlib.contextmanager
-def _no_swap(self, i):
-    yield  # every seed draws from the one global stream, one after the other
-
-
 @pytest.mark.parametrize("broken", ["one_shared_stream", "streams_swapped"])
 def test_shared_or_mixed_random_streams_are_detected(broken, monkeypatch):
     make = factory()
     lone = lone_runs(make, steps=200)
-    if broken == "one_shared_stream":
-        monkeypatch.setattr(SeedRandomStreams, "seed", _no_swap)
+    if broken == "one_shared_stream":  # every seed draws from the global generators, one after the other
+        monkeypatch.setattr(RandomStreams, "detach", lambda self: self)
         batch = SeedBatch(make, SEEDS)
     else:
         batch = SeedBatch(make, SEEDS)
-        batch.streams.states[0], batch.streams.states[1] = batch.streams.states[1], batch.streams.states[0]
+        first = batch.streams[0].state()
+        batch.streams[0].set_state(batch.streams[1].state())
+        batch.streams[1].set_state(first)
     batch.learn(200)
     differ = [i for i, d in enumerate(differences(batch, lone)) if d > 1e-4]
     assert differ, f"{broken}: the seeds match their lone runs, so the test cannot see mixed streams"
@@ -222,7 +234,7 @@ def test_bad_input_is_refused_with_a_clear_message():
         batch.learn(10, callback=[shared, [shared]])
     model = make(0)
     with pytest.raises(ValueError, match="a model is given twice"):
-        SeedBatch.from_models([model, model], [GlobalRandomState.capture()] * 2, seeds=[0, 1])
+        SeedBatch.from_models([model, model], seeds=[0, 1])
 
 
 class CountingTrain(TD3X):

@@ -1,17 +1,22 @@
 """``python run.py seeds=[...]``: the seeds trained in one process write the folders their lone ``seed=`` runs write,
-with the same evaluations; a batch stopped by SIGTERM resumes, whole, from any seed's folder."""
+with the same evaluations, weights and replay buffers (to the bit on a CPU); a batch stopped by SIGTERM resumes,
+whole, from any seed's folder."""
 
 from __future__ import annotations
 
 import csv
+import io
 import json
+import pickle
 import signal
 import subprocess
 import sys
 import time
+import zipfile
 from pathlib import Path
 
 import pytest
+import torch as th
 from omegaconf import OmegaConf
 
 from sb3_td3x.experiment.checkpoints import META_FILE
@@ -57,6 +62,62 @@ def assert_same_evaluations(ours: Path, theirs: Path) -> None:
     for row, lone in zip(a, b):
         for key in ("mean_return", "std_return", "value_estimate", "true_value"):
             assert row[key] == pytest.approx(lone[key], rel=1e-4, abs=1e-4, nan_ok=True), (ours, row["timesteps"], key)
+
+
+# Hopper-v5 with TD3's 400-300 networks: 3000 steps, 2000 gradient steps after 1000 random ones.
+HOPPER = [
+    "env=hopper",
+    "total_timesteps=3000",
+    "algo.learning_starts=1000",
+    "eval.freq=1000",
+    "eval.n_episodes=2",
+    "logger=none",
+    "progress_bar=false",
+]
+
+
+def final_state(run_dir: Path) -> tuple[list[dict[str, str]], dict[str, th.Tensor], dict[str, th.Tensor]]:
+    """The evaluations (as written), the final weights and the replay buffer's contents of a finished run."""
+    with open(run_dir / "evaluations.csv") as file:
+        rows = [{key: value for key, value in row.items() if key != "time"} for row in csv.DictReader(file)]
+    last = run_dir / "checkpoints" / "last"
+    assert json.loads((last / META_FILE).read_text())["num_timesteps"] == 3000
+    with zipfile.ZipFile(last / "model.zip") as archive:
+        weights = th.load(io.BytesIO(archive.read("policy.pth")), weights_only=True)
+    with open(last / "replay_buffer.pkl", "rb") as file:
+        buffer = pickle.load(file)
+    stored = {name: th.as_tensor(getattr(buffer, name)) for name in ("observations", "next_observations", "actions", "rewards", "dones")}
+    return rows, weights, stored
+
+
+def largest_difference(ours: dict[str, th.Tensor], theirs: dict[str, th.Tensor]) -> str:
+    gaps = {name: (ours[name].double() - theirs[name].double()).abs().max().item() for name in theirs}
+    name = max(gaps, key=gaps.get)
+    return f"largest difference {gaps[name]:.3g} in {name}"
+
+
+def test_each_batched_seed_is_its_lone_run_to_the_bit_on_hopper(tmp_path):
+    """``seeds=[0,1,2]`` against three lone ``seed=i`` runs: every seed's evaluations, final weights and replay buffer
+    bit-identical to its lone run's, after 2000 gradient steps."""
+    seeds = (0, 1, 2)
+    processes = [run_py(*HOPPER, "seeds=[0,1,2]", f"run_dir={tmp_path / 'batch'}")]
+    processes += [run_py(*HOPPER, f"seed={seed}", f"run_dir={tmp_path / f'lone{seed}'}") for seed in seeds]
+    for process in processes:
+        finish(process, timeout=1500)
+    for seed in seeds:
+        (rows, weights, buffer), (lone_rows, lone_weights, lone_buffer) = (
+            final_state(tmp_path / "batch" / f"seed{seed}"),
+            final_state(tmp_path / f"lone{seed}"),
+        )
+        assert [row["timesteps"] for row in lone_rows] == ["1000", "2000", "3000"]
+        assert rows == lone_rows, f"seed {seed}: evaluations {rows} != {lone_rows}"
+        assert weights.keys() == lone_weights.keys()
+        assert all(th.equal(weights[k], lone_weights[k]) for k in weights), (
+            f"seed {seed} weights: {largest_difference(weights, lone_weights)}"
+        )
+        assert all(th.equal(buffer[k], lone_buffer[k]) for k in buffer), (
+            f"seed {seed} replay buffer: {largest_difference(buffer, lone_buffer)}"
+        )
 
 
 def test_a_batch_writes_the_folders_and_evaluations_of_its_lone_runs(tmp_path):

@@ -21,9 +21,8 @@ assumes (``requirements(model)``, checked conservatively: when in doubt, the use
 Collection has its own shortcut, :class:`~.exploration.DirectMlpActor`, chosen by
 :func:`~.exploration.choose_exploration_actor`.
 
-Training many seeds in one process has its own, :class:`~.seeds.SeedStackedMlpUpdate`: the gradient steps of N
-models that ``MlpUpdate`` would train, computed together, each seed as its lone run computes it (issue 17, in
-progress: nothing picks it yet; its constructor refuses models it cannot train exactly, with the reasons).
+Many seeds in one process (:class:`~sb3_td3x.SeedBatch`) run the same ``MlpUpdate``, over their N models at once:
+a lone model is a batch of one.
 
 :func:`~.choose.choose_update` picks the fastest way that computes what the model's code computes, and says why.
 Imports go one way: ``hooks`` <- ``requirements`` <- the paths <- ``choose`` <- ``td3x``; none imports ``TD3X``.

@@ -25,7 +25,9 @@ with autograd, as before. Steps 14 and 15 are the model's own hooks, overridden 
 
 from __future__ import annotations
 
+import contextlib
 import math
+from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any
 
 import torch as th
@@ -45,12 +47,15 @@ _relu_backward = th.ops.aten.threshold_backward
 _tanh_backward = th.ops.aten.tanh_backward
 
 
-def _matmul(a: th.Tensor, b: th.Tensor) -> th.Tensor:
-    """``a @ b``; an outer product (inner dimension 1, as back through a critic's output layer) as a broadcast
-    multiply, which is what the product computes, without a matrix-product call for it."""
+def _mm(a: th.Tensor, b: th.Tensor) -> th.Tensor:
+    """``a @ b`` over a leading axis of networks, (n, i, k) @ (n, k, j): for one network a 2-D product (the kernel a
+    lone network's layer runs on a CPU), for more one batched product; an inner dimension of 1 (back through an output
+    layer) as the broadcast multiply it is."""
     if a.shape[-1] == 1:
         return a * b
-    return a @ b
+    if a.shape[0] == 1:
+        return (a[0] @ b[0]).unsqueeze(0)
+    return th.bmm(a, b)
 
 
 def _mkldnn_linear_relu() -> tuple[Any, frozenset[th.dtype]]:
@@ -93,24 +98,30 @@ def _linear_relu(x: th.Tensor, weight: th.Tensor, bias: th.Tensor) -> th.Tensor:
     return addmm_relu(x, weight, bias)
 
 
-def optimizer_step(optimizer: th.optim.Optimizer) -> None:
-    """``optimizer.step()``; for a fused Adam or AdamW, the kernel ``step()`` ends in, called straight away.
+def step_optimizers(optimizers: list[th.optim.Optimizer]) -> None:
+    """``optimizer.step()`` of each; the fused Adams (or AdamWs) of equal options as one call of the kernel their
+    ``step()`` ends in.
 
     ``Adam.step`` spends about as long in Python (grouping the tensors by device, checking its options) as its fused
-    kernel takes on a critic. When nothing can differ (one parameter group, fused, no AMSGrad, maximize,
-    differentiable or capturable, a float learning rate, no step hooks, every state already created by a first
-    ``step()``), this makes the same two calls ``torch.optim.adam._fused_adam`` makes; otherwise it calls ``step()``.
+    kernel takes on a critic. When nothing can differ (see :func:`fused_adam_call`) the kernel is called straight
+    away, once for the optimizers of all seeds: it is elementwise, so each tensor gets what its own ``step()`` gives.
     """
-    call = fused_adam_call(optimizer)
-    if call is None:
-        optimizer.step()
-    else:
-        run_fused_adam([call])
+    groups: dict[tuple[Any, ...], list[Any]] = {}
+    for optimizer in optimizers:
+        call = fused_adam_call(optimizer)
+        if call is None:
+            optimizer.step()
+        else:
+            groups.setdefault((call[0], *sorted(call[1].items())), []).append(call)
+    for calls in groups.values():
+        run_fused_adam(calls)
 
 
 def fused_adam_call(optimizer: th.optim.Optimizer) -> tuple[Any, dict[str, Any], list[list[th.Tensor]]] | None:
     """The kernel a fused Adam or AdamW's ``step()`` ends in, its options, and its tensors (parameters, gradients,
-    ``exp_avg``, ``exp_avg_sq``, ``step``) when nothing else can differ (see :func:`optimizer_step`); else None."""
+    ``exp_avg``, ``exp_avg_sq``, ``step``) when nothing can differ (one parameter group, fused, no AMSGrad, maximize,
+    differentiable or capturable, a float learning rate, no step hooks, every state made by a first ``step()``);
+    else None."""
     if not isinstance(optimizer, th.optim.Adam) or len(optimizer.param_groups) != 1:
         return None
     if optimizer._optimizer_step_pre_hooks or optimizer._optimizer_step_post_hooks:
@@ -241,15 +252,17 @@ class MlpStack:
     def forward(
         x: th.Tensor, all_weights: list[th.Tensor], all_biases: list[th.Tensor]
     ) -> tuple[th.Tensor, list[th.Tensor]]:
-        """Every network's output, shape (n, batch, out), and each layer's input (for backward).
+        """Every network's output, shape (n, batch, out), and each layer's input (for backward), from ``x``, one
+        input per network, (n, batch, in) (an expanded view for an input they share).
 
-        ``x`` is one input for every network, (batch, in), or one per network, (n, batch, in).
+        One network runs as 2-D products (on a CPU oneDNN's linear with the ReLU fused into it), more as one batched
+        product per layer.
         """
+        if all_weights[0].shape[0] == 1:
+            out, inputs = relu_mlp([w[0] for w in all_weights], [b[0] for b in all_biases], x[0])
+            return out.unsqueeze(0), [h.unsqueeze(0) for h in inputs]
         inputs = [x]
-        # One batched product, a shared input broadcast: (n, batch, out).
-        h = th.baddbmm(
-            all_biases[0].unsqueeze(1), x if x.dim() == 3 else x.expand(all_weights[0].shape[0], *x.shape), all_weights[0].mT
-        )
+        h = th.baddbmm(all_biases[0].unsqueeze(1), x, all_weights[0].mT)
         for weights, biases in zip(all_weights[1:], all_biases[1:]):
             h = h.relu_()
             inputs.append(h)
@@ -265,11 +278,11 @@ class MlpStack:
         bias_grads: list[th.Tensor] = []
         grad = grad_out
         for depth in range(len(all_weights) - 1, -1, -1):
-            h = inputs[depth] if depth > 0 or inputs[0].dim() == 3 else inputs[0].expand(grad.shape[0], *inputs[0].shape)
-            weight_grads.append(th.bmm(grad.mT, h).float())
-            bias_grads.append(grad.sum(dim=1).float())
+            h = inputs[depth]
+            weight_grads.append(_mm(grad.mT, h).float())
+            bias_grads.append((grad[0].sum(dim=0).unsqueeze(0) if grad.shape[0] == 1 else grad.sum(dim=1)).float())
             if depth > 0:
-                grad = _relu_backward(_matmul(grad, all_weights[depth]), h, 0)
+                grad = _relu_backward(_mm(grad, all_weights[depth]), h, 0)
         return weight_grads[::-1], bias_grads[::-1]
 
 
@@ -285,12 +298,6 @@ def relu_mlp(
         x = linear_relu(x, w, b)
         inputs.append(x)
     return th.addmm(biases[-1], x, weights[-1].t()), inputs
-
-
-def _actor_forward(weights: Weights, obs: th.Tensor) -> tuple[th.Tensor, list[th.Tensor]]:
-    """pi(s) in [-1, 1] and each layer's input, from the actor's stacked (1, out, in) weights."""
-    out, inputs = relu_mlp([w[0] for w in weights[0]], [b[0] for b in weights[1]], obs)
-    return out.tanh_(), inputs
 
 
 def compute_dtype_batch(batch: Any, dtype: th.dtype) -> tuple[th.Tensor, ...]:
@@ -313,79 +320,107 @@ def compute_dtype_batch(batch: Any, dtype: th.dtype) -> tuple[th.Tensor, ...]:
     )
 
 
+def _per_critic(x: th.Tensor, n_critics: int) -> th.Tensor:
+    """(G, batch, in) -> (G * n_critics, batch, in): each seed's input for each of its critics, seed-major (one seed's
+    as an expanded view, as a lone model's critics share their input)."""
+    return x.expand(n_critics, *x.shape[1:]) if x.shape[0] == 1 else x.repeat_interleave(n_critics, dim=0)
+
+
+def _first_critic(weights: Weights, n_critics: int) -> Weights:
+    """Each seed's first critic, (G, out, in), from all critics' stacked (G * n_critics, out, in) weights (views)."""
+    return (
+        [w.unflatten(0, (-1, n_critics))[:, 0] for w in weights[0]],
+        [b.unflatten(0, (-1, n_critics))[:, 0] for b in weights[1]],
+    )
+
+
 def critic_gradients(
     batch: tuple[th.Tensor, ...],
     discounts: th.Tensor | float,
     noise: th.Tensor | None,
     noise_clip: float,
     clipped_double_q: bool,
+    n_critics: int,
     actor_target: Weights,
     critic_target: Weights,
     critic: Weights,
 ) -> tuple[list[th.Tensor], list[th.Tensor], dict[str, th.Tensor]]:
-    """Steps 5 to 11 and the critics' gradients: a pure function of its inputs (so it can be compiled).
+    """Steps 5 to 11 and the critics' gradients of G seeds: a pure function of its inputs (so it can be compiled).
 
     The products run in the weights' dtype (bf16 with ``bf16=True``): pass the weights, the observations and the
     actions already in it (see :func:`compute_dtype_batch`); rewards and dones stay fp32.
 
-    :param batch: (observations, actions, next_observations, rewards, dones)
-    :param noise: the target policy smoothing noise before clipping, sigma N(0, 1), or None without smoothing
-    :return: the critics' weight and bias gradients (fp32, stacked like the weights) and the logged statistics
+    :param batch: (observations, actions, next_observations, rewards, dones), each (G, batch, dim)
+    :param discounts: gamma, or the n-step discounts (G, batch, 1)
+    :param noise: the target policy smoothing noise before clipping, sigma N(0, 1), (G, batch, action_dim), or None
+    :return: the critics' weight and bias gradients (fp32, stacked like the weights, (G * n_critics, ...)) and the
+        statistics per seed: ``critic_loss`` and ``target_q`` (G,), ``q`` (G, n_critics)
     """
     obs, actions, next_obs, rewards, dones = batch
+    n_seeds, batch_size = obs.shape[:2]
     dtype = critic[0][0].dtype
-    next_actions, _ = _actor_forward(actor_target, next_obs)  # step 5
+    next_actions, _ = MlpStack.forward(next_obs, *actor_target)  # step 5: (G, batch, action_dim)
+    next_actions = next_actions.tanh_()
     if noise is not None:  # step 6
         next_actions = next_actions + noise.clamp(-noise_clip, noise_clip)
     next_actions = next_actions.clamp(-1.0, 1.0)
-    next_q, _ = MlpStack.forward(th.cat([next_obs, next_actions], dim=1), *critic_target)  # step 7
-    next_q = next_q.min(dim=0).values if clipped_double_q else next_q[0]  # step 8
+    next_q, _ = MlpStack.forward(_per_critic(th.cat([next_obs, next_actions], dim=2), n_critics), *critic_target)
+    next_q = next_q.unflatten(0, (n_seeds, n_critics))  # step 7: (G, n_critics, batch, 1)
+    next_q = next_q.min(dim=1).values if clipped_double_q else next_q[:, 0]  # step 8: (G, batch, 1)
     target_q = rewards + (1.0 - dones) * discounts * next_q.float()  # step 9
-    obs_actions = th.cat([obs, actions], dim=1)
-    current_q, inputs = MlpStack.forward(obs_actions, *critic)  # step 10
-    td_errors = current_q.float() - target_q.unsqueeze(0)  # (n_critics, batch, 1)
-    loss = td_errors.square().mean(dim=(1, 2)).sum()  # step 11: sum_i MSE(Q_i, y)
+    current_q, inputs = MlpStack.forward(_per_critic(th.cat([obs, actions], dim=2), n_critics), *critic)  # step 10
+    current_q = current_q.float().unflatten(0, (n_seeds, n_critics))
+    td_errors = current_q - target_q.unsqueeze(1)  # (G, n_critics, batch, 1)
+    loss = td_errors.square().mean(dim=(2, 3)).sum(dim=1)  # step 11, per seed: sum_i MSE(Q_i, y)
     # d loss / d Q_i = 2 (Q_i - y) / batch
-    grads = MlpStack.backward((td_errors * (2.0 / td_errors.shape[1])).to(dtype), inputs, critic[0])
-    info = {"critic_loss": loss, "target_q": target_q.mean()}
-    q_means = current_q.float().mean(dim=(1, 2))
-    for i in range(current_q.shape[0]):
-        info[f"q{i + 1}"] = q_means[i]
+    grads = MlpStack.backward((td_errors * (2.0 / batch_size)).to(dtype).flatten(0, 1), inputs, critic[0])
+    info = {"critic_loss": loss, "target_q": target_q.mean(dim=(1, 2)), "q": current_q.mean(dim=(2, 3))}
     return grads[0], grads[1], info
 
 
-def actor_gradients(obs: th.Tensor, actor: Weights, critic: Weights) -> tuple[list[th.Tensor], list[th.Tensor], th.Tensor]:
-    """Step 13's gradient: J = -mean Q_1(s, pi(s)), back through the first critic to the action only.
+def actor_gradients(
+    obs: th.Tensor, n_critics: int, actor: Weights, critic: Weights
+) -> tuple[list[th.Tensor], list[th.Tensor], th.Tensor]:
+    """Step 13's gradient of G seeds: J = -mean Q_1(s, pi(s)), back through the first critic to the action only.
 
     The products run in the weights' dtype: pass the weights and the observations already in it.
 
-    :return: the actor's weight and bias gradients (fp32, stacked like the weights) and the loss
+    :param obs: (G, batch, obs_dim)
+    :return: the actors' weight and bias gradients (fp32, stacked like the weights, (G, ...)) and the losses (G,)
     """
     dtype = critic[0][0].dtype
-    actions, actor_inputs = _actor_forward(actor, obs)
-    weights = [w[0] for w in critic[0]]
-    q, critic_inputs = relu_mlp(weights, [b[0] for b in critic[1]], th.cat([obs, actions], dim=1))
-    q = q.float()  # (batch, 1)
-    loss = -q.mean()
-    # d J / d Q_1 = -1 / batch, back through the critic's layers to its input
-    grad = th.full_like(q, -1.0 / q.shape[0]).to(dtype)
+    actions, actor_inputs = MlpStack.forward(obs, *actor)  # (G, batch, action_dim)
+    actions = actions.tanh_()
+    weights, biases = _first_critic(critic, n_critics)
+    q, critic_inputs = MlpStack.forward(th.cat([obs, actions], dim=2), weights, biases)
+    q = q.float()  # (G, batch, 1)
+    loss = -q.mean(dim=(1, 2))
+    # d J / d Q_1 = -1 / batch, back through each seed's first critic to its input
+    grad = th.full_like(q, -1.0 / q.shape[1]).to(dtype)
     for depth in range(len(weights) - 1, 0, -1):
-        grad = _relu_backward(_matmul(grad, weights[depth]), critic_inputs[depth], 0)
-    grad = grad @ weights[0][:, obs.shape[1] :]  # d J / d a: the action columns of the first layer only
+        grad = _relu_backward(_mm(grad, weights[depth]), critic_inputs[depth], 0)
+    grad = _mm(grad, weights[0][:, :, obs.shape[2] :])  # d J / d a: the action columns of the first layer only
     grad = _tanh_backward(grad, actions)
-    weight_grads: list[th.Tensor] = []
-    bias_grads: list[th.Tensor] = []
-    for depth in range(len(actor[0]) - 1, -1, -1):
-        h = actor_inputs[depth]
-        weight_grads.append((grad.t() @ h).float().unsqueeze(0))
-        bias_grads.append(grad.sum(dim=0).float().unsqueeze(0))
-        if depth > 0:
-            grad = _relu_backward(grad @ actor[0][depth][0], h, 0)
-    return weight_grads[::-1], bias_grads[::-1], loss
+    weight_grads, bias_grads = MlpStack.backward(grad, actor_inputs, actor[0])
+    return weight_grads, bias_grads, loss
+
+
+# What enters the shared arithmetic of many models: it must be the same in all of them.
+SHARED_SETTINGS = (
+    "gamma",
+    "n_steps",
+    "target_policy_smoothing",
+    "target_policy_noise",
+    "target_noise_clip",
+    "clipped_double_q",
+    "bf16",
+    "compile_update",
+    "flush_denormals",
+)
 
 
 class MlpUpdate(requirements.FastPath):
-    """Steps 5 to 15 of TD3 for MLP policies, gradients by hand (see the module's docstring).
+    """Steps 5 to 15 of TD3 for MLP policies, gradients by hand (see the module's docstring), for one model or many.
 
     It replaces the hooks in :attr:`replaces` (their arithmetic is written out here) and calls the model's own
     ``sample_batch``, ``should_update_actor``, ``update_actor_target`` and ``update_critic_target``.
@@ -394,6 +429,17 @@ class MlpUpdate(requirements.FastPath):
     With ``compile=True`` (``compile_update=True``), :func:`critic_gradients` and :func:`actor_gradients` are compiled
     with ``torch.compile`` (one graph each); sampling, the random numbers, the optimizers and the target updates stay
     eager.
+
+    **Many models** (one per seed, :class:`~sb3_td3x.SeedBatch`): :meth:`step` does one gradient step of each, from
+    one batch each. Each role's weights of all models live in one :class:`MlpStack` (a leading seed axis; each
+    model's parameters are views of it, so its optimizers, ``save`` and ``load`` see its own). The products of
+    ``seeds_per_product`` seeds run as one call: by default one on a CPU, so each seed runs the kernels, shapes and
+    order of operations of its lone run and computes its numbers bit for bit; all of them on a GPU, where a seed
+    then equals its lone run to float rounding. The fused Adam steps and stock target updates of all seeds run as
+    one call each (elementwise: bit for bit either way). Each seed's noise comes from its own model's streams.
+
+    :param models: a model, or the models of a batch (see :meth:`why_not_together`)
+    :param around: ``around(i)``, a context entered around model ``i``'s target-update hooks when they are its own
     """
 
     replaces = (
@@ -412,14 +458,33 @@ class MlpUpdate(requirements.FastPath):
         "optimize_actor",
     )
 
-    def __init__(self, model: TD3X, compile: bool = False):
-        self.model = model
+    def __init__(
+        self,
+        models: TD3X | Sequence[TD3X],
+        compile: bool = False,
+        seeds_per_product: int | None = None,
+        around: Callable[[int], contextlib.AbstractContextManager] | None = None,
+    ):
+        self.models = list(models) if isinstance(models, (list, tuple)) else [models]
+        self.model = self.models[0]
+        self.around = around or (lambda i: contextlib.nullcontext())
         self._critic_gradients = th.compile(critic_gradients, dynamic=False) if compile else critic_gradients
         self._actor_gradients = th.compile(actor_gradients, dynamic=False) if compile else actor_gradients
-        self.actor = MlpStack([relu_mlp_layers(model.actor.mu, nn.Tanh)])  # type: ignore[list-item]
-        self.actor_target = MlpStack([relu_mlp_layers(model.actor_target.mu, nn.Tanh)])  # type: ignore[list-item]
-        self.critic = MlpStack([relu_mlp_layers(q, None) for q in model.critic.q_networks])  # type: ignore[misc]
-        self.critic_target = MlpStack([relu_mlp_layers(q, None) for q in model.critic_target.q_networks])  # type: ignore[misc]
+        self.n_critics = len(self.model.critic.q_networks)
+        if seeds_per_product is None:
+            # On a CPU a product over many seeds outgrows the caches (and would round as no lone run does).
+            seeds_per_product = len(self.models) if self.model.device.type == "cuda" else 1
+        self.seeds_per_product = seeds_per_product
+        ms = self.models
+        self.actor = MlpStack([relu_mlp_layers(m.actor.mu, nn.Tanh) for m in ms])  # type: ignore[misc]
+        self.actor_target = MlpStack([relu_mlp_layers(m.actor_target.mu, nn.Tanh) for m in ms])  # type: ignore[misc]
+        # Seed-major: network s * n_critics + k is seed s's critic k.
+        self.critic = MlpStack([relu_mlp_layers(q, None) for m in ms for q in m.critic.q_networks])  # type: ignore[misc]
+        self.critic_target = MlpStack([relu_mlp_layers(q, None) for m in ms for q in m.critic_target.q_networks])  # type: ignore[misc]
+        self._stock_targets = [not changed_hooks(m, ("update_critic_target", "update_actor_target")) for m in ms]
+        if len(ms) > 1:
+            for lin in {id(lin): lin for stack in self._stacks() for net in stack.layers for lin in net}.values():
+                lin.register_state_dict_post_hook(_compact_state_dict)
         self.dtype = th.float32
 
     @classmethod
@@ -436,54 +501,171 @@ class MlpUpdate(requirements.FastPath):
         reasons += requirements.no_buffers(model.policy)
         return list(dict.fromkeys(reasons))  # in order, without repeats
 
+    @classmethod
+    def why_not_together(cls, models: Sequence[TD3X]) -> str | None:
+        """Why these models cannot share one update (every reason, joined), or ``None``: each must be one this
+        update trains (``mlp_update=True``, no ``cuda_graph``), distinct, with the architecture, the device and
+        :data:`SHARED_SETTINGS` of the first."""
+        reasons = [f"model {i}: {r}" for i, m in enumerate(models) if (r := cls.why_not(m)) is not None]
+        reasons += [f"model {i}: mlp_update=False" for i, m in enumerate(models) if not m.mlp_update]
+        reasons += [f"model {i}: cuda_graph=True" for i, m in enumerate(models) if m.cuda_graph]
+        params = [p.data_ptr() for m in models for p in m.policy.parameters()]
+        if len({id(m) for m in models}) != len(models) or len(set(params)) != len(params):
+            reasons.append("a model is given twice, or models share parameters")
+        first = models[0]
+        for i, m in enumerate(models[1:], start=1):
+            if _architecture(m) != _architecture(first) or m.device != first.device:
+                reasons.append(f"model {i}'s networks or device differ from model 0's")
+            reasons += [
+                f"model {i}'s {name} is {getattr(m, name)!r}, model 0's {getattr(first, name)!r}"
+                for name in SHARED_SETTINGS
+                if getattr(m, name) != getattr(first, name)
+            ]
+        return "; ".join(reasons) if reasons else None
+
+    def _stacks(self) -> tuple[MlpStack, ...]:
+        return (self.actor, self.actor_target, self.critic, self.critic_target)
+
     # ------------------------------------------------------------------------------------------------------------
     def __call__(self, batch: Any, update_actor: bool) -> Infos:
-        for stack in (self.actor, self.actor_target, self.critic, self.critic_target):
+        return self.step([batch], [update_actor])[0]
+
+    def step(self, batches: Sequence[Any], update_actor: Sequence[bool]) -> list[Infos]:
+        """Steps 5 to 15 of every model, model ``i`` on ``batches[i]``, its actor and targets when ``update_actor[i]``.
+        Returns each model's statistics."""
+        for stack in self._stacks():
             stack.ensure_bound()
         # bf16=True: the products and activations in bf16 (as under autocast), the weights, their gradients, the
         # optimizers and the losses in fp32.
         self.dtype = th.bfloat16 if self.model.bf16 else th.float32
+        updating = [i for i, update in enumerate(update_actor) if update]
         with th.no_grad():
-            critic_info = self._update_critics(batch)  # steps 5-12
-            if not update_actor:
-                return critic_info, {}
-            actor_info = self._update_actor(batch.observations)  # step 13
-        self.model.update_critic_target()  # step 15
-        self.model.update_actor_target()  # step 14
-        return critic_info, actor_info
+            critic_infos = self._update_critics(batches)  # steps 5-12
+            actor_infos = self._update_actors(batches, updating)  # step 13
+        self._update_targets(updating)  # steps 15 and 14
+        return list(zip(critic_infos, actor_infos))
 
-    def _weights(self, stack: MlpStack) -> Weights:
-        # Cast here, one operation per stack, also when compiled (the graph's inputs are then already in the
-        # compute dtype; see compute_dtype_batch for what a cast inside the graph can do in bf16).
-        return stack.cast(self.dtype)
+    def _groups(self) -> list[tuple[int, int]]:
+        """The seeds whose products run as one call: ``a`` to ``b - 1`` for each ``(a, b)``."""
+        n, size = len(self.models), self.seeds_per_product
+        return [(a, min(a + size, n)) for a in range(0, n, size)]
 
-    def _update_critics(self, batch: Any) -> dict[str, th.Tensor]:
-        """Steps 5 to 12."""
-        model = self.model
-        noise = None
-        if model.target_policy_smoothing:  # step 6's noise, drawn as randn_like(pi'(s')) draws it
-            shape = (batch.next_observations.shape[0], self.actor_target.weights[-1].shape[1])  # (batch, action_dim)
-            noise = th.randn(shape, dtype=self.dtype, device=batch.rewards.device) * model.target_policy_noise
-        discounts = batch.discounts if getattr(batch, "discounts", None) is not None else model.gamma
-        weight_grads, bias_grads, info = self._critic_gradients(
-            compute_dtype_batch(batch, self.dtype),
-            discounts,
-            noise,
-            float(model.target_noise_clip),
-            bool(model.clipped_double_q),
-            self._weights(self.actor_target),
-            self._weights(self.critic_target),
-            self._weights(self.critic),
-        )
+    def _seeds(self, stack: MlpStack, a: int, b: int, per_seed: int = 1) -> Weights:
+        """Seeds ``a`` to ``b - 1``'s weights and biases (views), ``per_seed`` networks each, in the compute dtype
+        (cast here, one operation per stack, so that a compiled graph's inputs are already in it)."""
+        weights, biases = stack.cast(self.dtype)
+        return [w[a * per_seed : b * per_seed] for w in weights], [x[a * per_seed : b * per_seed] for x in biases]
+
+    def _noise(self, model: TD3X, batch: Any) -> th.Tensor:
+        """Step 6's noise, drawn as ``randn_like(pi'(s'))`` draws it, from the model's own torch stream."""
+        shape = (batch.next_observations.shape[0], self.actor_target.weights[-1].shape[1])  # (batch, action_dim)
+        device = batch.rewards.device
+        generator = model.random_streams.torch(device)
+        return th.randn(shape, dtype=self.dtype, device=device, generator=generator) * model.target_policy_noise
+
+    def _update_critics(self, batches: Sequence[Any]) -> list[dict[str, th.Tensor]]:
+        """Steps 5 to 12 of every model."""
+        first = self.model
+        inputs = [compute_dtype_batch(batch, self.dtype) for batch in batches]
+        noises = [self._noise(m, b) for m, b in zip(self.models, batches)] if first.target_policy_smoothing else None
+        with_discounts = getattr(batches[0], "discounts", None) is not None
+        parts = []
+        for a, b in self._groups():
+            parts.append(
+                self._critic_gradients(
+                    tuple(_seed_axis([x[k] for x in inputs[a:b]]) for k in range(5)),
+                    _seed_axis([batch.discounts for batch in batches[a:b]]) if with_discounts else first.gamma,
+                    None if noises is None else _seed_axis(noises[a:b]),
+                    float(first.target_noise_clip),
+                    bool(first.clipped_double_q),
+                    self.n_critics,
+                    self._seeds(self.actor_target, a, b),
+                    self._seeds(self.critic_target, a, b, self.n_critics),
+                    self._seeds(self.critic, a, b, self.n_critics),
+                )
+            )
+        weight_grads, bias_grads, info = _joined(parts)
         self.critic.assign_grads(weight_grads, bias_grads)
-        optimizer_step(model.critic.optimizer)  # step 12
-        return info
+        step_optimizers([m.critic.optimizer for m in self.models])  # step 12
+        infos = []
+        for i in range(len(self.models)):
+            seed_info = {"critic_loss": info["critic_loss"][i], "target_q": info["target_q"][i]}
+            for k in range(self.n_critics):
+                seed_info[f"q{k + 1}"] = info["q"][i, k]
+            infos.append(seed_info)
+        return infos
 
-    def _update_actor(self, obs: th.Tensor) -> dict[str, th.Tensor]:
-        """Step 13 (with the critics as updated by step 12)."""
-        weight_grads, bias_grads, loss = self._actor_gradients(
-            obs.to(self.dtype), self._weights(self.actor), self._weights(self.critic)
-        )
-        self.actor.assign_grads(weight_grads, bias_grads)
-        optimizer_step(self.model.actor.optimizer)
-        return {"actor_loss": loss}
+    def _update_actors(self, batches: Sequence[Any], updating: list[int]) -> list[dict[str, th.Tensor]]:
+        """Step 13 of the models in ``updating`` (with the critics as updated by step 12)."""
+        infos: list[dict[str, th.Tensor]] = [{} for _ in self.models]
+        for a, b in self._groups():
+            if not any(a <= i < b for i in updating):
+                continue
+            weight_grads, bias_grads, loss = self._actor_gradients(
+                _seed_axis([batch.observations.to(self.dtype) for batch in batches[a:b]]),
+                self.n_critics,
+                self._seeds(self.actor, a, b),
+                self._seeds(self.critic, a, b, self.n_critics),
+            )
+            for i in (i for i in updating if a <= i < b):
+                for depth, lin in enumerate(self.actor.layers[i]):
+                    lin.weight.grad = weight_grads[depth][i - a]
+                    lin.bias.grad = bias_grads[depth][i - a]
+                infos[i] = {"actor_loss": loss[i - a]}
+        step_optimizers([self.models[i].actor.optimizer for i in updating])
+        return infos
+
+    def _update_targets(self, updating: list[int]) -> None:
+        """Steps 15 and 14: the stock ones of equal ``tau`` as one ``_foreach_lerp_`` (what each model's ``_polyak``
+        calls; no batch norm here, so nothing else to copy), overridden ones as written."""
+        groups: dict[float, tuple[list[th.Tensor], list[th.Tensor]]] = {}
+        for i in updating:
+            model = self.models[i]
+            if self._stock_targets[i]:
+                targets, params = groups.setdefault(float(model.tau), ([], []))
+                targets += [*model._critic_target_params, *model._actor_target_params]
+                params += [*model._critic_params, *model._actor_params]
+            else:
+                with self.around(i):
+                    model.update_critic_target()  # step 15
+                    model.update_actor_target()  # step 14
+        with th.no_grad():
+            for tau, (targets, params) in groups.items():
+                th._foreach_lerp_(targets, params, tau)
+
+
+def _seed_axis(tensors: Sequence[th.Tensor]) -> th.Tensor:
+    """The tensors of consecutive seeds along a new leading axis (one seed's as a view)."""
+    return tensors[0].unsqueeze(0) if len(tensors) == 1 else th.stack(list(tensors))
+
+
+def _joined(parts: list[tuple[Any, ...]]) -> tuple[Any, ...]:
+    """The gradients and statistics of consecutive groups of seeds as one group's: concatenated on the seed axis."""
+    if len(parts) == 1:
+        return parts[0]
+
+    def join(values: list[Any]) -> Any:
+        if isinstance(values[0], dict):
+            return {key: th.cat([v[key] for v in values]) for key in values[0]}
+        return [th.cat([v[i] for v in values]) for i in range(len(values[0]))]
+
+    return tuple(join([part[k] for part in parts]) for k in range(len(parts[0])))
+
+
+def _architecture(model: TD3X) -> list[list[tuple[int, ...]]]:
+    """The weight shapes of the actor and of each critic."""
+    nets = [relu_mlp_layers(model.actor.mu, nn.Tanh), *(relu_mlp_layers(q, None) for q in model.critic.q_networks)]
+    return [[tuple(lin.weight.shape) for lin in net] for net in nets]  # type: ignore[union-attr]
+
+
+def _compact_state_dict(module: nn.Module, state_dict: dict[str, Any], prefix: str, local_metadata: Any) -> None:
+    """A state-dict post-hook: a tensor that is a view of a larger storage (every seed's weights) is replaced by a
+    copy of itself, so that ``torch.save`` (``model.save``) writes this model's weights only."""
+    for name in ("weight", "bias"):
+        value = state_dict.get(prefix + name)
+        if (
+            isinstance(value, th.Tensor)
+            and not isinstance(value, nn.Parameter)  # state_dict(keep_vars=True): the Parameters themselves
+            and value.untyped_storage().nbytes() > value.numel() * value.element_size()
+        ):
+            state_dict[prefix + name] = value.clone()
