@@ -487,7 +487,6 @@ def _run_seeds(
     seeds = [int(s) for s in cfg.seeds]
     dirs = seed_run_dirs(cfg)
     runs: list[_Run] = []
-    streams: list[RandomStreams] = []
     handlers: list[logging.Handler] = []
     if cfg.resume is not None and not any(find_checkpoint(checkpoint_dir(d, LAST)) for d in dirs):
         raise ConfigError(
@@ -496,50 +495,13 @@ def _run_seeds(
         )
     caller = RandomStreams().state()
     try:
-        for index, (seed, run_dir) in enumerate(zip(seeds, dirs)):
-            seed_cfg = OmegaConf.create(OmegaConf.to_container(cfg, resolve=False))
-            seed_cfg.seed, seed_cfg.run_dir = seed, str(run_dir)
-            seed_cfg.seed_run_dirs = [str(d) for d in dirs]
-            resumes = cfg.resume is not None and find_checkpoint(checkpoint_dir(run_dir, LAST)) is not None
-            if cfg.resume is not None and not resumes:
-                log.warning(
-                    "Seed %d has no checkpoint in %s: it starts from the beginning (as its lone run would).", seed, run_dir
-                )
-            seed_cfg.resume = str(run_dir) if resumes else None
-            if (handler := _seed_log_file(run_dir, index)) is not None:
-                handlers.append(handler)
-            with acting_as(index):
-                runs.append(_prepare(seed_cfg, restart=cfg.resume is not None))
-                # Where this seed's lone run stands when it calls learn(): its random streams from now on.
-                streams.append(detached_streams(runs[-1].model))
+        streams = _prepare_seeds(cfg, seeds, dirs, runs, handlers)
         RandomStreams().set_state(caller)
         reports = _SeedReports(seeds, runs, statistic, report, report_seeds)
         for index, run in enumerate(runs):
             assert run.evaluation is not None
             run.evaluation.listeners.append(reports.listener(index))
-        training = [i for i, run in enumerate(runs) if run.remaining > 0]
-        reports.training = set(training)
-        errors: dict[int, BaseException] = {}
-        if training:
-            batch = SeedBatch.from_models(
-                [runs[i].model for i in training], [streams[i] for i in training], [seeds[i] for i in training]
-            )
-            reason = batch.why_not_stacked()
-            log.info(
-                "Training seeds %s together in one process: %s",
-                [seeds[i] for i in training],
-                "the gradient steps batched (seed_stacked_mlp)" if reason is None else f"each seed's update alone ({reason})",
-            )
-            with StopOnSignal(*[runs[i].checkpointer for i in training]):  # type: ignore[misc]
-                batch.learn(
-                    total_timesteps=[runs[i].remaining for i in training],
-                    callback=[runs[i].callbacks for i in training],
-                    log_interval=cfg.logger.log_interval,
-                    reset_num_timesteps=[runs[i].resume_from is None for i in training],
-                    keep_going=True,
-                    on_error=lambda position, error: reports.stopped(training[position], error),
-                )
-            errors = {training[position]: error for position, error in batch.errors.items()}
+        errors = _train_seeds(cfg, runs, streams, seeds, reports)
         if reports.error is not None:
             raise reports.error
         finals = {}
@@ -547,15 +509,7 @@ def _run_seeds(
             if index not in errors:
                 with acting_as(index):
                     finals[seeds[index]] = _finish(run)
-        for kind in (TrainingInterrupted, TrainingDiverged, BaseException):
-            failed = [(i, e) for i, e in errors.items() if isinstance(e, kind)]
-            if failed:
-                index, error = failed[0]
-                if isinstance(error, TrainingInterrupted):
-                    # Resume the batch from any seed's folder (each config.yaml lists them all).
-                    raise TrainingInterrupted(error.signal_name, error.exit_code, error.num_timesteps, str(dirs[0])) from error
-                log.error("Seed %d failed: %s", seeds[index], error)
-                raise error
+        _raise_first(errors, seeds, dirs)
         value = seed_statistic(statistic, list(finals.values()))
         _log_seed_aggregate(dirs, seeds, finals, statistic, value)
         return value
@@ -566,6 +520,70 @@ def _run_seeds(
         for handler in handlers:
             logging.getLogger().removeHandler(handler)
             handler.close()
+
+
+def _prepare_seeds(
+    cfg: DictConfig, seeds: list[int], dirs: list[Path], runs: list[_Run], handlers: list[logging.Handler]
+) -> list[RandomStreams]:
+    """Each seed's run prepared as its lone run is (into ``runs``, its log file into ``handlers``); returns each
+    model's random streams, detached where its lone run stands when it calls learn()."""
+    streams = []
+    for index, (seed, run_dir) in enumerate(zip(seeds, dirs)):
+        seed_cfg = OmegaConf.create(OmegaConf.to_container(cfg, resolve=False))
+        seed_cfg.seed, seed_cfg.run_dir = seed, str(run_dir)
+        seed_cfg.seed_run_dirs = [str(d) for d in dirs]
+        resumes = cfg.resume is not None and find_checkpoint(checkpoint_dir(run_dir, LAST)) is not None
+        if cfg.resume is not None and not resumes:
+            log.warning("Seed %d has no checkpoint in %s: it starts from the beginning (as its lone run would).", seed, run_dir)
+        seed_cfg.resume = str(run_dir) if resumes else None
+        if (handler := _seed_log_file(run_dir, index)) is not None:
+            handlers.append(handler)
+        with acting_as(index):
+            runs.append(_prepare(seed_cfg, restart=cfg.resume is not None))
+            streams.append(detached_streams(runs[-1].model))
+    return streams
+
+
+def _train_seeds(
+    cfg: DictConfig, runs: list[_Run], streams: list[RandomStreams], seeds: list[int], reports: _SeedReports
+) -> dict[int, BaseException]:
+    """The seeds with steps left trained by one SeedBatch; returns seed index -> what stopped it."""
+    training = [i for i, run in enumerate(runs) if run.remaining > 0]
+    reports.training = set(training)
+    if not training:
+        return {}
+    batch = SeedBatch.from_models(
+        [runs[i].model for i in training], [streams[i] for i in training], [seeds[i] for i in training]
+    )
+    reason = batch.why_not_stacked()
+    log.info(
+        "Training seeds %s together in one process: %s",
+        [seeds[i] for i in training],
+        "the gradient steps batched (seed_stacked_mlp)" if reason is None else f"each seed's update alone ({reason})",
+    )
+    with StopOnSignal(*[runs[i].checkpointer for i in training]):  # type: ignore[misc]
+        batch.learn(
+            total_timesteps=[runs[i].remaining for i in training],
+            callback=[runs[i].callbacks for i in training],
+            log_interval=cfg.logger.log_interval,
+            reset_num_timesteps=[runs[i].resume_from is None for i in training],
+            keep_going=True,
+            on_error=lambda position, error: reports.stopped(training[position], error),
+        )
+    return {training[position]: error for position, error in batch.errors.items()}
+
+
+def _raise_first(errors: dict[int, BaseException], seeds: list[int], dirs: list[Path]) -> None:
+    """What stopped a seed, if any: an interruption first (the batch resumes), then a divergence, then the rest."""
+    for kind in (TrainingInterrupted, TrainingDiverged, BaseException):
+        failed = [(i, e) for i, e in errors.items() if isinstance(e, kind)]
+        if failed:
+            index, error = failed[0]
+            if isinstance(error, TrainingInterrupted):
+                # Resume the batch from any seed's folder (each config.yaml lists them all).
+                raise TrainingInterrupted(error.signal_name, error.exit_code, error.num_timesteps, str(dirs[0])) from error
+            log.error("Seed %d failed: %s", seeds[index], error)
+            raise error
 
 
 class _SeedFilter(logging.Filter):

@@ -223,6 +223,12 @@ class TD3X(OffPolicyAlgorithm):
     # ------------------------------------------------------------------------------------------------------------
     # Set-up (steps 1-3: replay buffer, actor, critics and their targets)
     # ------------------------------------------------------------------------------------------------------------
+    def set_random_seed(self, seed: int | None = None) -> None:
+        """SB3's, which seeds the global generators: into the model's own streams when they are detached."""
+        streams = self.__dict__.get("random_streams")
+        with streams.installed() if streams is not None else contextlib.nullcontext():
+            super().set_random_seed(seed)
+
     def _link_replay_buffer_streams(self) -> None:
         if isinstance(self.replay_buffer, TensorReplayBuffer):
             self.replay_buffer.random_streams = self.random_streams  # step 4's indices

@@ -17,10 +17,13 @@ It computes what :meth:`TD3X.update_from_batch` computes (the tests compare both
 batch and the same random numbers, so it replaces it only where that holds: :meth:`MlpUpdate.why_not` checks every
 assumption (the hooks of :data:`MlpUpdate.replaces` as written, SB3's own actor and critic classes with their
 ``forward`` as written, ReLU MLPs with a flatten features extractor, no module or gradient hooks, trainable fp32
-parameters, no batch norm). With ``bf16=True``
-the products run in bf16 with fp32 weights, gradients and optimizer, as under autocast. Anything else runs the hooks
-with autograd, as before. Steps 14 and 15 are the model's own hooks, overridden or not. :func:`critic_gradients` and
-:func:`actor_gradients` are pure functions of their inputs, which ``compile_update=True`` compiles.
+parameters, no batch norm). With ``bf16=True`` the products run in bf16 with fp32 weights, gradients and optimizer,
+as under autocast. Anything else runs the hooks with autograd, as before. Steps 14 and 15 are the model's own hooks,
+overridden or not. :func:`critic_gradients` and :func:`actor_gradients` are pure functions of their inputs, with a
+leading seed axis, which ``compile_update=True`` compiles.
+
+One implementation for one model and for many: a lone TD3X runs it with one model, a
+:class:`~sb3_td3x.SeedBatch` with its N models (see :class:`MlpUpdate`).
 """
 
 from __future__ import annotations
@@ -484,7 +487,8 @@ class MlpUpdate(requirements.FastPath):
         self._stock_targets = [not changed_hooks(m, ("update_critic_target", "update_actor_target")) for m in ms]
         if len(ms) > 1:
             for lin in {id(lin): lin for stack in self._stacks() for net in stack.layers for lin in net}.values():
-                lin.register_state_dict_post_hook(_compact_state_dict)
+                if _compact_state_dict not in lin._state_dict_hooks.values():
+                    lin.register_state_dict_post_hook(_compact_state_dict)
         self.dtype = th.float32
 
     @classmethod
