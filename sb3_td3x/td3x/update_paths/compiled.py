@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Any
 
 import torch as th
 
-from sb3_td3x.common.torch_internals import global_optimizer_hooks
+from sb3_td3x.common.torch_internals import global_optimizer_hooks, optimizer_step_hooks
 from sb3_td3x.td3x.hooks import changed_hooks
 from sb3_td3x.td3x.update_paths import requirements
 
@@ -99,8 +99,8 @@ class FunctionalCompiledUpdate(requirements.FastPath):
                 reasons.append("an optimizer has several parameter groups")
             elif any(optimizer.param_groups[0].get(k) for k in ("amsgrad", "maximize", "differentiable")):
                 reasons.append("the optimizer uses amsgrad, maximize or differentiable")
-            if optimizer._optimizer_step_pre_hooks or optimizer._optimizer_step_post_hooks:
-                reasons.append("an optimizer has step hooks")
+            if optimizer_step_hooks(optimizer) is not False:
+                reasons.append("an optimizer has step hooks (or this torch keeps them where TD3X cannot see)")
         global_hooks = global_optimizer_hooks()
         if global_hooks is not False:
             reasons.append("a global optimizer step hook is registered" if global_hooks else

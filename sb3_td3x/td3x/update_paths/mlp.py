@@ -34,9 +34,9 @@ from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any
 
 import torch as th
-import torch.optim.optimizer as _optim_module
 from torch import nn
 
+from sb3_td3x.common.torch_internals import fused_adam_kernel, global_optimizer_hooks, linear_relu_kernel, optimizer_step_hooks
 from sb3_td3x.td3x.hooks import changed_hooks
 from sb3_td3x.td3x.update_paths import requirements
 from sb3_td3x.td3x.update_paths.requirements import relu_mlp_layers
@@ -61,26 +61,6 @@ def _mm(a: th.Tensor, b: th.Tensor) -> th.Tensor:
     return th.bmm(a, b)
 
 
-def _mkldnn_linear_relu() -> tuple[Any, frozenset[th.dtype]]:
-    """oneDNN's linear with a fused ReLU, and the dtypes it runs in on this CPU (bf16 only with AVX-512 or AMX:
-    on an AVX2 CPU it fails with "could not create a primitive descriptor")."""
-    op = getattr(getattr(th.ops, "mkldnn", None), "_linear_pointwise", None)
-    dtypes = set()
-    for dtype in (th.float32, th.bfloat16):
-        try:
-            x = th.ones(2, 3, dtype=dtype)
-            op(x, th.ones(4, 3, dtype=dtype), th.zeros(4, dtype=dtype), "relu", [], "")  # type: ignore[misc]
-            dtypes.add(dtype)
-        except (TypeError, RuntimeError):
-            pass
-    return (op if dtypes else None), frozenset(dtypes)
-
-
-_LINEAR_POINTWISE, _LINEAR_POINTWISE_DTYPES = (
-    _mkldnn_linear_relu() if th.backends.mkldnn.is_available() else (None, frozenset())
-)
-
-
 def addmm_relu(x: th.Tensor, weight: th.Tensor, bias: th.Tensor) -> th.Tensor:
     """relu(x W^T + b) with the kernels of ``nn.Linear`` and ``nn.ReLU``."""
     return th.addmm(bias, x, weight.t()).relu_()
@@ -88,16 +68,11 @@ def addmm_relu(x: th.Tensor, weight: th.Tensor, bias: th.Tensor) -> th.Tensor:
 
 def _linear_relu(x: th.Tensor, weight: th.Tensor, bias: th.Tensor) -> th.Tensor:
     """relu(x W^T + b). On a CPU, oneDNN's linear with the ReLU fused into it (what torch.compile's CPU backend
-    calls): one pass over the output instead of two, and faster than MKL's addmm at these sizes (0.24 against 0.29 ms
-    for 256 x 400 x 300 in fp32 on the 2-core benchmark machine). Under torch.compile, addmm and relu (Inductor
-    lowers them itself)."""
-    if (
-        _LINEAR_POINTWISE is not None
-        and x.device.type == "cpu"
-        and x.dtype in _LINEAR_POINTWISE_DTYPES
-        and not th.compiler.is_compiling()
-    ):
-        return _LINEAR_POINTWISE(x, weight, bias, "relu", [], "")
+    calls): one pass over the output instead of two, and faster than MKL's addmm at these sizes
+    (docs/performance.md). Under torch.compile, addmm and relu (Inductor lowers them itself)."""
+    kernel, dtypes = linear_relu_kernel()
+    if kernel is not None and x.device.type == "cpu" and x.dtype in dtypes and not th.compiler.is_compiling():
+        return kernel(x, weight, bias, "relu", [], "")
     return addmm_relu(x, weight, bias)
 
 
@@ -127,9 +102,7 @@ def fused_adam_call(optimizer: th.optim.Optimizer) -> tuple[Any, dict[str, Any],
     else None."""
     if not isinstance(optimizer, th.optim.Adam) or len(optimizer.param_groups) != 1:
         return None
-    if optimizer._optimizer_step_pre_hooks or optimizer._optimizer_step_post_hooks:
-        return None
-    if _optim_module._global_optimizer_pre_hooks or _optim_module._global_optimizer_post_hooks:
+    if optimizer_step_hooks(optimizer) is not False or global_optimizer_hooks() is not False:
         return None
     group = optimizer.param_groups[0]
     if not group.get("fused") or isinstance(group["lr"], th.Tensor):
@@ -140,7 +113,9 @@ def fused_adam_call(optimizer: th.optim.Optimizer) -> tuple[Any, dict[str, Any],
     states = [optimizer.state.get(p) for p in params]
     if not params or not all(states):
         return None
-    kernel = th._fused_adamw_ if group.get("decoupled_weight_decay") else th._fused_adam_
+    kernel = fused_adam_kernel(bool(group.get("decoupled_weight_decay")))
+    if kernel is None:
+        return None
     beta1, beta2 = group["betas"]
     options = {"lr": group["lr"], "beta1": beta1, "beta2": beta2, "weight_decay": group["weight_decay"], "eps": group["eps"]}
     tensors = [
