@@ -171,16 +171,8 @@ class TrialObjective:
         except optuna.exceptions.UpdateFinishedTrialError:  # finished elsewhere before training began
             return TrialResult(optuna.trial.TrialState.FAIL, reason="finished by another worker", finished_elsewhere=True)
 
-    def _run(self, trial: optuna.Trial) -> TrialResult:
-        from sb3_td3x.experiment.errors import TrainingDiverged, TrainingInterrupted
-
-        values = {param.path: param.suggest(trial) for param in self.spec.params}
-        resume_dir = self._resumable_run_dir(trial)
-        if resume_dir is not None:  # the queued copy of a trial stopped by Ctrl-C/SIGTERM: continue its run
-            seeds, run_dir = self._recorded_seeds(trial), resume_dir
-        else:
-            seeds, run_dir = self.spec.trial_seeds(trial.number), self.run_dir(trial.number)
-        overrides = self.overrides(values, seeds, run_dir, resume=resume_dir is not None)
+    def _record_start(self, trial: optuna.Trial, overrides: list[str], seeds: list[int], run_dir: Path) -> None:
+        """What the trial runs, as its user attributes."""
         # a queued copy inherits its original's attributes; these describe how the original ended
         for inherited in ("fail_reason", "prune_reason", RESUMABLE, SEED_VALUES, SEED_VALUES_STEP):
             if trial.user_attrs.get(inherited) is not None:
@@ -192,6 +184,18 @@ class TrialObjective:
             trial.set_user_attr("seeds_aggregate", self.spec.seeds_aggregate)
         trial.set_user_attr("run_dir", str(run_dir))
         trial.set_user_attr("worker", worker_id())
+
+    def _run(self, trial: optuna.Trial) -> TrialResult:
+        from sb3_td3x.experiment.errors import TrainingDiverged, TrainingInterrupted
+
+        values = {param.path: param.suggest(trial) for param in self.spec.params}
+        resume_dir = self._resumable_run_dir(trial)
+        if resume_dir is not None:  # the queued copy of a trial stopped by Ctrl-C/SIGTERM: continue its run
+            seeds, run_dir = self._recorded_seeds(trial), resume_dir
+        else:
+            seeds, run_dir = self.spec.trial_seeds(trial.number), self.run_dir(trial.number)
+        overrides = self.overrides(values, seeds, run_dir, resume=resume_dir is not None)
+        self._record_start(trial, overrides, seeds, run_dir)
 
         evaluations: list[float] = []
         steps: list[int] = []
