@@ -70,8 +70,10 @@ def _linear_relu(x: th.Tensor, weight: th.Tensor, bias: th.Tensor) -> th.Tensor:
     """relu(x W^T + b). On a CPU, oneDNN's linear with the ReLU fused into it (what torch.compile's CPU backend
     calls): one pass over the output instead of two, and faster than MKL's addmm at these sizes
     (docs/performance.md). Under torch.compile, addmm and relu (Inductor lowers them itself)."""
+    if x.device.type != "cpu" or th.compiler.is_compiling():
+        return addmm_relu(x, weight, bias)
     kernel, dtypes = linear_relu_kernel()
-    if kernel is not None and x.device.type == "cpu" and x.dtype in dtypes and not th.compiler.is_compiling():
+    if kernel is not None and x.dtype in dtypes:
         return kernel(x, weight, bias, "relu", [], "")
     return addmm_relu(x, weight, bias)
 
