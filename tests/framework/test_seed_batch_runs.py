@@ -73,6 +73,7 @@ HOPPER = [
     "eval.n_episodes=2",
     "logger=none",
     "progress_bar=false",
+    "algo.batch_size=100",  # the paper's
     "torch_threads=1",  # four processes side by side: more threads than cores would wait on each other
 ]
 
