@@ -618,8 +618,8 @@ class TD3X(OffPolicyAlgorithm):
 
     def _own_stream_noise(self, noise: ActionNoise | None) -> Callable[[], np.ndarray] | None:
         """SB3's ``NormalActionNoise`` drawn as it draws it, from the model's numpy stream instead of numpy's global
-        generator (the same one unless detached); any other noise as it is."""
-        if type(noise) is not NormalActionNoise:
+        generator; any other noise, or any noise while the streams are the global generators, as it is."""
+        if type(noise) is not NormalActionNoise or self.random_streams.bound:
             return noise
         return lambda: self.random_streams.numpy.normal(noise._mu, noise._sigma).astype(noise._dtype)
 
