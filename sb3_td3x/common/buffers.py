@@ -209,19 +209,22 @@ class TensorReplayBuffer(ReplayBuffer):
         return np.random if streams is None else streams.numpy
 
     def _get_samples(self, batch_inds: np.ndarray | th.Tensor, env: VecNormalize | None = None) -> ReplayBufferSamples:
+        # Drawn as SB3 draws them, one env (always 0) included: the generator moves on as in SB3.
         env_inds = self._np_random().randint(0, high=self.n_envs, size=(len(batch_inds),))
-        return self._gather(th.as_tensor(batch_inds, device=self._device), th.as_tensor(env_inds, device=self._device), env)
+        batch = th.as_tensor(batch_inds, device=self._device)
+        return self._gather(batch, None if self.n_envs == 1 else th.as_tensor(env_inds, device=self._device), env)
 
-    def _gather(self, batch_inds: th.Tensor, env_inds: th.Tensor, env: VecNormalize | None) -> ReplayBufferSamples:
+    def _gather(self, batch_inds: th.Tensor, env_inds: th.Tensor | None, env: VecNormalize | None) -> ReplayBufferSamples:
         # One flat row index per transition and ``index_select`` on (buffer_size * n_envs, ...) views: a third of the
-        # time of indexing with the two index tensors.
-        rows = batch_inds * self.n_envs + env_inds
+        # time of indexing with the two index tensors. One env (``env_inds`` None): the row is the index.
+        rows = batch_inds if env_inds is None else batch_inds * self.n_envs + env_inds
 
         def take(storage: th.Tensor, index: th.Tensor = rows) -> th.Tensor:
             return storage.view(-1, *storage.shape[2:]).index_select(0, index)
 
         if self.optimize_memory_usage:
-            next_obs = take(self.observations, (batch_inds + 1) % self.buffer_size * self.n_envs + env_inds)
+            next_rows = (batch_inds + 1) % self.buffer_size * self.n_envs
+            next_obs = take(self.observations, next_rows if env_inds is None else next_rows + env_inds)
         else:
             next_obs = take(self.next_observations)  # type: ignore[arg-type]
         obs = take(self.observations)

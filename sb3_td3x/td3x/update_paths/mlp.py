@@ -92,16 +92,50 @@ def step_optimizers(optimizers: list[th.optim.Optimizer]) -> None:
         if call is None:
             optimizer.step()
         else:
-            groups.setdefault((call[0], *sorted(call[1].items())), []).append(call)
+            groups.setdefault((call[0], *call[1].values()), []).append(call)
     for calls in groups.values():
         run_fused_adam(calls)
 
 
-def fused_adam_call(optimizer: th.optim.Optimizer) -> tuple[Any, dict[str, Any], list[list[th.Tensor]]] | None:
-    """The kernel a fused Adam or AdamW's ``step()`` ends in, its options, and its tensors (parameters, gradients,
-    ``exp_avg``, ``exp_avg_sq``, ``step``) when nothing can differ (one parameter group, fused, no AMSGrad, maximize,
-    differentiable or capturable, a float learning rate, no step hooks, every state made by a first ``step()``);
-    else None."""
+class _AdamTensors:
+    """The state tensors of a fused Adam's parameters, looked up once: still valid while the optimizer keeps the same
+    state dictionary, parameter list and state tensors (``load_state_dict`` replaces them: looked up again).
+
+    Each parameter's ``step`` counter becomes a view of one tensor of all of them, with the same values, so that the
+    step that precedes the kernel is one addition instead of one per parameter (a ``step()`` through the optimizer
+    increments the views in place, as it increments its own tensors)."""
+
+    __slots__ = ("state", "params", "entries", "exp_avgs", "exp_avg_sqs", "steps", "counters")
+
+    def __init__(self, optimizer: th.optim.Optimizer, params: list[th.Tensor], states: list[dict[str, Any]]):
+        self.state, self.params = optimizer.state, params
+        self.counters = th.stack([state["step"] for state in states])
+        for k, state in enumerate(states):
+            state["step"] = self.counters[k]
+        self.entries = states
+        self.exp_avgs = [state["exp_avg"] for state in states]
+        self.exp_avg_sqs = [state["exp_avg_sq"] for state in states]
+        self.steps = [state["step"] for state in states]
+
+    def valid(self, optimizer: th.optim.Optimizer, params: list[th.Tensor]) -> bool:
+        return (
+            optimizer.state is self.state
+            and params is self.params
+            and all(
+                s["exp_avg"] is m and s["exp_avg_sq"] is v and s["step"] is c
+                for s, m, v, c in zip(self.entries, self.exp_avgs, self.exp_avg_sqs, self.steps)
+            )
+        )
+
+
+_ADAM_TENSORS = "_sb3_td3x_adam_tensors"
+
+
+def fused_adam_call(optimizer: th.optim.Optimizer) -> tuple[Any, dict[str, Any], _AdamTensors, list[th.Tensor]] | None:
+    """The kernel a fused Adam or AdamW's ``step()`` ends in, its options, its state tensors and the gradients, when
+    nothing can differ (one parameter group, fused, no AMSGrad, maximize, differentiable or capturable, a float
+    learning rate, no step hooks, every parameter with a gradient and a state made by a first ``step()``); else
+    None."""
     if not isinstance(optimizer, th.optim.Adam) or len(optimizer.param_groups) != 1:
         return None
     if optimizer_step_hooks(optimizer) is not False or global_optimizer_hooks() is not False:
@@ -111,31 +145,40 @@ def fused_adam_call(optimizer: th.optim.Optimizer) -> tuple[Any, dict[str, Any],
         return None
     if group["amsgrad"] or group["maximize"] or group["differentiable"] or group["capturable"]:
         return None
-    params = [p for p in group["params"] if p.grad is not None]
-    states = [optimizer.state.get(p) for p in params]
-    if not params or not all(states):
+    params = group["params"]
+    grads = [p.grad for p in params]
+    if not params or any(g is None for g in grads):
         return None
+    tensors = optimizer.__dict__.get(_ADAM_TENSORS)
+    if tensors is None or not tensors.valid(optimizer, params):
+        states = [optimizer.state.get(p) for p in params]
+        if not all(states) or any(state["step"].shape != () for state in states):  # type: ignore[union-attr]
+            return None
+        tensors = optimizer.__dict__[_ADAM_TENSORS] = _AdamTensors(optimizer, params, states)  # type: ignore[arg-type]
     kernel = fused_adam_kernel(bool(group.get("decoupled_weight_decay")))
     if kernel is None:
         return None
     beta1, beta2 = group["betas"]
     options = {"lr": group["lr"], "beta1": beta1, "beta2": beta2, "weight_decay": group["weight_decay"], "eps": group["eps"]}
-    tensors = [
-        params,
-        [p.grad for p in params],
-        [state["exp_avg"] for state in states],  # type: ignore[index]
-        [state["exp_avg_sq"] for state in states],  # type: ignore[index]
-        [state["step"] for state in states],  # type: ignore[index]
-    ]
-    return kernel, options, tensors
+    return kernel, options, tensors, grads  # type: ignore[return-value]
 
 
-def run_fused_adam(calls: list[tuple[Any, dict[str, Any], list[list[th.Tensor]]]]) -> None:
-    """The calls of :func:`fused_adam_call`, all of one kernel and options, as one step counter increment and one
-    kernel call over all their tensors (the update is elementwise: each tensor's is what its own call computes)."""
-    kernel, options, _ = calls[0]
-    params, grads, exp_avgs, exp_avg_sqs, steps = ([t for call in calls for t in call[2][k]] for k in range(5))
-    th._foreach_add_(steps, 1)
+def run_fused_adam(calls: list[tuple[Any, dict[str, Any], _AdamTensors, list[th.Tensor]]]) -> None:
+    """The calls of :func:`fused_adam_call`, all of one kernel and options: each optimizer's step counters
+    incremented (one addition each), then one kernel call over all their tensors (the update is elementwise: each
+    tensor's is what its own call computes)."""
+    kernel, options = calls[0][0], calls[0][1]
+    for call in calls:
+        call[2].counters.add_(1)
+    if len(calls) == 1:
+        tensors, grads = calls[0][2], calls[0][3]
+        params, exp_avgs, exp_avg_sqs, steps = tensors.params, tensors.exp_avgs, tensors.exp_avg_sqs, tensors.steps
+    else:
+        params = [p for call in calls for p in call[2].params]
+        grads = [g for call in calls for g in call[3]]
+        exp_avgs = [t for call in calls for t in call[2].exp_avgs]
+        exp_avg_sqs = [t for call in calls for t in call[2].exp_avg_sqs]
+        steps = [t for call in calls for t in call[2].steps]
     kernel(
         params,
         grads,
@@ -197,11 +240,12 @@ class MlpStack:
                 self.biases[depth][i].copy_(lin.bias.detach())
                 lin.weight.data = self.weights[depth][i]
                 lin.bias.data = self.biases[depth][i]
+        self._params = self.parameters()
         self._pointers = self._current_pointers()
         self._low_precision.clear()
 
     def _current_pointers(self) -> list[int]:
-        return [p.data_ptr() for p in self.parameters()]
+        return [p.data_ptr() for p in self._params]
 
     def parameters(self) -> list[nn.Parameter]:
         """Every parameter, network by network, layer by layer, weight then bias."""
@@ -535,6 +579,8 @@ class MlpUpdate(requirements.FastPath):
         """Seeds ``a`` to ``b - 1``'s weights and biases (views), ``per_seed`` networks each, in the compute dtype
         (cast here, one operation per stack, so that a compiled graph's inputs are already in it)."""
         weights, biases = stack.cast(self.dtype)
+        if a == 0 and b == len(self.models):
+            return weights, biases
         return [w[a * per_seed : b * per_seed] for w in weights], [x[a * per_seed : b * per_seed] for x in biases]
 
     def _noise(self, model: TD3X, batch: Any) -> th.Tensor:
@@ -598,7 +644,16 @@ class MlpUpdate(requirements.FastPath):
 
     def _update_targets(self, updating: list[int]) -> None:
         """Steps 15 and 14: the stock ones of equal ``tau`` as one ``_foreach_lerp_`` (what each model's ``_polyak``
-        calls; no batch norm here, so nothing else to copy), overridden ones as written."""
+        calls; no batch norm here, so nothing else to copy), overridden ones as written. When every model updates
+        its stock targets with one ``tau``, that is one ``lerp_`` per stack over its flat tensor: the same
+        elementwise arithmetic, on every target parameter of every model, in two calls."""
+        taus = {float(self.models[i].tau) for i in updating}
+        if len(updating) == len(self.models) and len(taus) == 1 and all(self._stock_targets):
+            tau = taus.pop()
+            with th.no_grad():
+                for target, online in ((self.critic_target, self.critic), (self.actor_target, self.actor)):
+                    target.store.flat.lerp_(online.store.flat, tau)
+            return
         groups: dict[float, tuple[list[th.Tensor], list[th.Tensor]]] = {}
         for i in updating:
             model = self.models[i]
