@@ -1,4 +1,4 @@
-"""Twenty SIGKILLs at random moments (in start-up, training and checkpoint saves, every 25 steps), each followed by
+"""Ten SIGKILLs at random moments (in start-up, training and checkpoint saves, every 25 steps), each followed by
 ``resume=``: the run ends bit-identical to one never killed (``scripts/kill_loop.py``)."""
 
 from __future__ import annotations
@@ -13,9 +13,10 @@ REPO = Path(__file__).resolve().parents[2]
 
 
 @pytest.mark.slow
-def test_twenty_kills_end_as_the_run_never_killed(tmp_path):
+def test_ten_kills_end_as_the_run_never_killed(tmp_path):
+    """Ten kills (about 80 s; twenty took 155 s in CI): ``python scripts/kill_loop.py --kills 20`` runs more by hand."""
     result = subprocess.run(
-        [sys.executable, "scripts/kill_loop.py", "--kills", "20", "--work", str(tmp_path)],
+        [sys.executable, "scripts/kill_loop.py", "--kills", "10", "--work", str(tmp_path)],
         cwd=REPO,
         capture_output=True,
         text=True,
@@ -23,4 +24,4 @@ def test_twenty_kills_end_as_the_run_never_killed(tmp_path):
         check=False,
     )
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
-    assert "20 kills" in result.stdout and "bit-identical to the run never killed" in result.stdout
+    assert "10 kills" in result.stdout and "bit-identical to the run never killed" in result.stdout

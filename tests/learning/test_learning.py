@@ -1,5 +1,5 @@
-"""TD3X learns: Pendulum-v1 reaches a mean deterministic return of at least -250 within 8,000 steps (two seeds with the
-default update, one with the autograd one)."""
+"""TD3X learns: Pendulum-v1 reaches a mean deterministic return of at least -250 within 8,000 steps (TD3's 400-300
+networks, the default update, one seed)."""
 
 import gymnasium as gym
 import numpy as np
@@ -15,11 +15,13 @@ THRESHOLD = -250.0
 
 @pytest.mark.slow
 @pytest.mark.timeout(900)
-@pytest.mark.parametrize("seed, mlp_update", [(0, True), (1, True)], ids=["mlp-0", "mlp-1"])
+@pytest.mark.parametrize("seed, mlp_update", [(0, True)], ids=["mlp-0"])
 def test_td3x_learns_pendulum(seed, mlp_update):
-    """The default update (MlpUpdate, gradients by hand) on two seeds. The hooks with autograd compute the same
+    """The default update (MlpUpdate, gradients by hand) on one seed. The hooks with autograd compute the same
     weights from one seed (tests/equivalence: test_user_changes.py's stock cases, test_equivalence.py against SB3's
-    TD3), so a learning run of their own (100 s in CI) was dropped to keep the suite under 15 minutes."""
+    TD3), and a batched seed is its lone run to the bit (tests/framework/test_seed_batch_runs.py), so learning runs
+    of their own (autograd, a second seed: 100 to 140 s each in CI) were dropped to keep the suite under 15 minutes.
+    The results pages (docs/results.md) show learning on MuJoCo with several seeds."""
     env = gym.make("Pendulum-v1")
     model = TD3X(
         "MlpPolicy",
