@@ -116,6 +116,29 @@ def test_mlp_update_stacks_the_critics_and_survives_save_load(tmp_path):
     assert_same_training(loaded, reference)
 
 
+def test_optimizer_state_replaced_between_steps_is_the_one_stepped():
+    """MlpUpdate keeps a fused Adam's state tensors from one step to the next (and makes each ``step`` counter a view
+    of one tensor): what ``load_state_dict`` or a user's code puts in the optimizer's state is what the next step
+    updates, as ``optimizer.step()`` would."""
+    fast, reference = pair()
+    data = batches(9)
+    train_on(fast, data[:3], progresses=(1.0,))
+    train_on(reference, data[:3], progresses=(1.0,))
+    for model in (fast, reference):
+        for optimizer in (model.actor.optimizer, model.critic.optimizer):
+            optimizer.load_state_dict(copy.deepcopy(optimizer.state_dict()))  # every state tensor replaced
+        first = next(iter(model.critic.parameters()))
+        model.critic.optimizer.state[first]["exp_avg"] = th.ones_like(first)  # one replaced by hand
+    train_on(fast, data[3:6], progresses=(1.0,))
+    train_on(reference, data[3:6], progresses=(1.0,))
+    assert fast.update_path == "mlp"
+    assert_same_training(fast, reference)
+    steps = [state["step"] for state in fast.critic.optimizer.state.values()]
+    assert len({s.untyped_storage().data_ptr() for s in steps}) == 1  # views of one tensor, moved by one addition
+    fast.critic.optimizer.step()  # the optimizer's own step() moves each counter as its own tensor
+    assert [float(s) for s in steps] == [float(steps[0])] * len(steps) and float(steps[0]) == 7.0
+
+
 class HuberTD3X(TD3X):
     calls = 0
 
