@@ -10,13 +10,20 @@ it raises :class:`SignalInterrupt` (a :class:`KeyboardInterrupt`), which the wor
 A signal held while the worker waits for the storage's budget lock acts once the lock is free; the lock is held only
 for the moment another worker creates a trial.
 
+A signal handler raises where the main thread happens to be, and that can be a finalizer or a weakref callback run by
+the garbage collector (SQLAlchemy has some), where Python drops the exception with an "Exception ignored" traceback.
+While the trial runs, such a dropped :class:`SignalInterrupt` is sent again a millisecond later, so that it acts in the
+trial's own code; it is never lost, and the traceback is not printed.
+
 Signals can only be handled in the main thread; elsewhere this does nothing.
 """
 
 from __future__ import annotations
 
 import contextlib
+import os
 import signal
+import sys
 import threading
 from collections.abc import Iterator
 from typing import Any
@@ -59,10 +66,29 @@ class HeldSignals:
     def live(self) -> Iterator[None]:
         """Let signals act while the block runs: each is remembered and raises :class:`SignalInterrupt`."""
         self._install(self._interrupt)
+        previous_hook = sys.unraisablehook
+        if self._active:
+            sys.unraisablehook = self._deliver_again(previous_hook)
         try:
             yield
         finally:
+            sys.unraisablehook = previous_hook
             self.hold()
+
+    @staticmethod
+    def _deliver_again(previous: Any) -> Any:
+        """An unraisable hook that sends a signal whose :class:`SignalInterrupt` Python dropped (raised in a finalizer or
+        a weakref callback) again, from another thread a millisecond later: it is then handled in the main thread's
+        own code, once the callback has returned. Anything else goes to ``previous``."""
+
+        def hook(unraisable: Any) -> None:
+            if isinstance(unraisable.exc_value, SignalInterrupt):
+                signum = getattr(signal, unraisable.exc_value.signal_name)
+                threading.Timer(0.001, os.kill, (os.getpid(), signum)).start()
+                return
+            previous(unraisable)
+
+        return hook
 
     def _install(self, handler: Any) -> None:
         if self._active:
