@@ -121,6 +121,7 @@ class _AdamTensors:
         return (
             optimizer.state is self.state
             and params is self.params
+            and len(params) == len(self.entries)  # a list grown in place
             and all(
                 s["exp_avg"] is m and s["exp_avg_sq"] is v and s["step"] is c
                 for s, m, v, c in zip(self.entries, self.exp_avgs, self.exp_avg_sqs, self.steps)
