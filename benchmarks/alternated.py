@@ -68,7 +68,7 @@ def worker(tree: str, algo: str, env: str, batch_size: int, threads: int, extra:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("sides", nargs="+", metavar="NAME=TREE:ALGO[:KEY=VALUE,...]")
+    parser.add_argument("sides", nargs="*", metavar="NAME=TREE:ALGO[:KEY=VALUE,...]")
     parser.add_argument("--env", default="Hopper-v5")
     parser.add_argument("--batch-size", type=int, default=100)
     parser.add_argument("--threads", type=int, default=os.cpu_count())
@@ -81,6 +81,8 @@ def main() -> None:
         tree, algo, *extra = args.worker
         worker(tree, algo, args.env, args.batch_size, args.threads, extra, args.mode)
         return
+    if not args.sides:
+        parser.error("give at least one side, NAME=TREE:ALGO[:KEY=VALUE,...], such as new=.:td3x")
     sides = {}
     for spec in args.sides:
         name, sep, rest = spec.partition("=")
@@ -88,7 +90,7 @@ def main() -> None:
         if not sep or len(parts) < 2 or parts[1] not in ("td3x", "sb3", "sbx") or not Path(parts[0]).is_dir():
             parser.error(f"{spec!r}: give NAME=TREE:ALGO[:KEY=VALUE,...], TREE a folder, ALGO td3x, sb3 or sbx")
         extra = parts[2].split(",") if len(parts) > 2 and parts[2] else []
-        command = [sys.executable, str(HERE), "x", "--env", args.env, "--batch-size", str(args.batch_size),
+        command = [sys.executable, str(HERE), "--env", args.env, "--batch-size", str(args.batch_size),
                    "--threads", str(args.threads), "--mode", args.mode, "--worker", parts[0], parts[1], *extra]  # fmt: skip
         sides[name] = subprocess.Popen(command, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
         if sides[name].stdout.readline().strip() != "ready":  # warm-ups one at a time, too

@@ -105,7 +105,7 @@ class _AdamTensors:
     step that precedes the kernel is one addition instead of one per parameter (a ``step()`` through the optimizer
     increments the views in place, as it increments its own tensors)."""
 
-    __slots__ = ("state", "params", "entries", "exp_avgs", "exp_avg_sqs", "steps", "counters")
+    __slots__ = ("counters", "entries", "exp_avg_sqs", "exp_avgs", "params", "state", "steps")
 
     def __init__(self, optimizer: th.optim.Optimizer, params: list[th.Tensor], states: list[dict[str, Any]]):
         self.state, self.params = optimizer.state, params
@@ -171,15 +171,11 @@ def run_fused_adam(calls: list[tuple[Any, dict[str, Any], _AdamTensors, list[th.
     kernel, options = calls[0][0], calls[0][1]
     for call in calls:
         call[2].counters.add_(1)
-    if len(calls) == 1:
-        tensors, grads = calls[0][2], calls[0][3]
-        params, exp_avgs, exp_avg_sqs, steps = tensors.params, tensors.exp_avgs, tensors.exp_avg_sqs, tensors.steps
-    else:
-        params = [p for call in calls for p in call[2].params]
-        grads = [g for call in calls for g in call[3]]
-        exp_avgs = [t for call in calls for t in call[2].exp_avgs]
-        exp_avg_sqs = [t for call in calls for t in call[2].exp_avg_sqs]
-        steps = [t for call in calls for t in call[2].steps]
+    params = [p for call in calls for p in call[2].params]
+    grads = [g for call in calls for g in call[3]]
+    exp_avgs = [t for call in calls for t in call[2].exp_avgs]
+    exp_avg_sqs = [t for call in calls for t in call[2].exp_avg_sqs]
+    steps = [t for call in calls for t in call[2].steps]
     kernel(
         params,
         grads,
