@@ -40,6 +40,7 @@ import torch as th
 from stable_baselines3 import TD3
 from stable_baselines3.common.logger import configure
 from stable_baselines3.common.noise import NormalActionNoise
+from torch.utils import flop_counter
 from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils.flop_counter import FlopCounterMode
 
@@ -110,7 +111,8 @@ def gradient_step_time(model: TD3, steps: int) -> float:
 
 
 _LINEAR_POINTWISE = getattr(getattr(th.ops, "mkldnn", None), "_linear_pointwise", None)
-if _LINEAR_POINTWISE is not None:
+# Registered once per process (this file may be loaded twice: imported by benchmarks/bare_step.py and by a test).
+if _LINEAR_POINTWISE is not None and _LINEAR_POINTWISE not in flop_counter.flop_registry:
     from torch.utils.flop_counter import register_flop_formula
 
     @register_flop_formula(_LINEAR_POINTWISE)
