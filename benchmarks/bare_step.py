@@ -1,6 +1,7 @@
 """How fast TD3X's gradient step could be with nothing around its kernels: a floor, measured, not a product path.
 
     python benchmarks/bare_step.py --env Hopper-v5 --batch-size 100 --mode learn    # SBX, TD3X, TD3X with a bare step
+    python benchmarks/bare_step.py --mode learn --variants 0 4     # the bare step, and with TD3X's promises kept
     python benchmarks/bare_step.py --env Hopper-v5 --batch-size 100 --mode train    # what each part of TD3X costs
 
 The *bare step* runs steps 4 to 15 of TD3 on the model's own networks with the kernels ``MlpUpdate`` runs (oneDNN's
@@ -12,8 +13,8 @@ optimizers, the logged statistics): it says how much of a step those promises an
 promises that change the numbers kept (v3, v4 below) it gives the weights TD3X's update gives
 (``tests/unit/test_bare_step.py``): the floor is the same computation.
 
-``--mode learn``: SBX's TD3, TD3X, and TD3X whose gradient step is the bare one, in one process, chunks of
-``learn()`` alternated (collection as TD3X runs it for both TD3X sides). ``--mode train``: gradient steps only, the
+``--mode learn``: SBX's TD3, TD3X, and TD3X whose gradient step is a bare one (``--variants``, v0 by default), in
+one process, chunks of ``learn()`` alternated (collection as TD3X runs it for every TD3X side). ``--mode train``: gradient steps only, the
 bare step (v0) and then one promise added at a time: v1 each parameter's ``.grad`` set, v2 the model's own optimizers
 (``optimizer.step()``'s kernel), v3 the batch sampled with SB3's random streams (``model.sample_batch``) and the
 smoothing noise from the model's stream, v4 the statistics TD3X logs; then TD3X's own update.
@@ -150,15 +151,19 @@ def main() -> None:
     parser.add_argument("--mode", choices=("learn", "train"), default="learn")
     parser.add_argument("--chunks", type=int, default=10)
     parser.add_argument("--chunk-steps", type=int, default=400)
+    parser.add_argument("--variants", type=int, nargs="+", default=[0], choices=range(5),
+                        help="--mode learn: the bare steps to run beside TD3X and SBX (0: bare, 4: TD3X's promises kept)")
     args = parser.parse_args()
     th.set_num_threads(args.threads)
     settings = {"batch_size": args.batch_size, "buffer_size": 200_000}
     if args.mode == "learn":
         peer = sbx_td3(args.threads)
-        models = {"TD3X": make_model(TD3X, args.env, 0, settings), "TD3X, bare step": make_model(TD3X, args.env, 0, settings)}
+        models = {"TD3X": make_model(TD3X, args.env, 0, settings)}
         if peer is not None:
             models = {"SBX TD3": make_model(peer, args.env, 0, settings), **models}
-        models["TD3X, bare step"]._step_fn = BareStep(models["TD3X, bare step"], 0)
+        for variant in args.variants:
+            model = models[f"TD3X, bare v{variant}"] = make_model(TD3X, args.env, 0, settings)
+            model._step_fn = BareStep(model, variant)
         runs = {name: functools.partial(model.learn, reset_num_timesteps=False) for name, model in models.items()}
         for model in models.values():
             model.learn(1_300)
