@@ -32,10 +32,8 @@ import torch as th
 from throughput import make_model, sbx_td3
 
 from sb3_td3x import TD3X
-from sb3_td3x.td3x.update_paths.mlp import MlpUpdate, step_optimizers
-
-_linear_relu = th.ops.mkldnn._linear_pointwise
-_relu_backward, _tanh_backward = th.ops.aten.threshold_backward, th.ops.aten.tanh_backward
+from sb3_td3x.common.torch_internals import fused_adam_kernel
+from sb3_td3x.td3x.update_paths.mlp import MlpUpdate, _relu_backward, _tanh_backward, relu_mlp, step_optimizers
 
 
 class BareStep:
@@ -53,17 +51,21 @@ class BareStep:
             for params in (self.critic_params, self.actor_params)
         }
 
-    def _adam(self, params: list[th.Tensor], grads: list[th.Tensor]) -> None:
+    def _adam(self, optimizer: th.optim.Optimizer, params: list[th.Tensor], grads: list[th.Tensor]) -> None:
+        """The fused Adam kernel with the optimizer's options, on this step's own state (v0, v1)."""
         exp_avgs, exp_avg_sqs, counters = self.adam[id(params)]
+        group = optimizer.param_groups[0]
+        beta1, beta2 = group["betas"]
         counters.add_(1)
-        th._fused_adam_(params, grads, exp_avgs, exp_avg_sqs, [], list(counters.unbind(0)), lr=1e-3, beta1=0.9,
-                        beta2=0.999, weight_decay=0.0, eps=1e-8, amsgrad=False, maximize=False)
+        fused_adam_kernel(False)(params, grads, exp_avgs, exp_avg_sqs, [], list(counters.unbind(0)), lr=group["lr"],
+                                 beta1=beta1, beta2=beta2, weight_decay=group["weight_decay"], eps=group["eps"],
+                                 amsgrad=False, maximize=False, grad_scale=None, found_inf=None)
 
     @staticmethod
     def _mlp(layers: list, x: th.Tensor) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
-        h1 = _linear_relu(x, layers[0].weight, layers[0].bias, "relu", [], "")
-        h2 = _linear_relu(h1, layers[1].weight, layers[1].bias, "relu", [], "")
-        return th.addmm(layers[2].bias, h2, layers[2].weight.t()), h1, h2
+        """MlpUpdate's forward of one network (its kernels): the output and both hidden activations."""
+        out, (_, h1, h2) = relu_mlp([lin.weight for lin in layers], [lin.bias for lin in layers], x)
+        return out, h1, h2
 
     @staticmethod
     def _stacked(weights: list[th.Tensor], biases: list[th.Tensor], x: th.Tensor) -> list[th.Tensor]:
@@ -140,7 +142,7 @@ class BareStep:
         if self.variant >= 2:
             step_optimizers([optimizer])
         else:
-            self._adam(params, grads)
+            self._adam(optimizer, params, grads)
 
 
 def main() -> None:

@@ -50,11 +50,6 @@ _relu_backward = th.ops.aten.threshold_backward
 _tanh_backward = th.ops.aten.tanh_backward
 
 
-def _fp32(x: th.Tensor) -> th.Tensor:
-    """``x.float()`` (a bf16 gradient made fp32), without a call when it already is."""
-    return x if x.dtype == th.float32 else x.float()
-
-
 def _mm(a: th.Tensor, b: th.Tensor) -> th.Tensor:
     """``a @ b`` over a leading axis of networks, (n, i, k) @ (n, k, j): one batched product, for one network too (on
     a CPU as fast as the 2-D product at these sizes, without the views around it); an inner dimension of 1 (back
@@ -303,8 +298,8 @@ class MlpStack:
         grad = grad_out
         for depth in range(len(all_weights) - 1, -1, -1):
             h = inputs[depth]
-            weight_grads.append(_fp32(_mm(grad.mT, h)))
-            bias_grads.append(_fp32(grad.sum(dim=1)))
+            weight_grads.append(_mm(grad.mT, h).float())
+            bias_grads.append(grad.sum(dim=1).float())
             if depth > 0:
                 grad = _relu_backward(_mm(grad, all_weights[depth]), h, 0)
         return weight_grads[::-1], bias_grads[::-1]
