@@ -13,6 +13,7 @@ import hydra
 from omegaconf import DictConfig
 
 from sb3_td3x.common.redaction import redact_log_records
+from sb3_td3x.experiment import job_watch
 from sb3_td3x.experiment.cli import check_command_line
 from sb3_td3x.experiment.cli import main as run_main
 
@@ -27,4 +28,5 @@ def main(cfg: DictConfig) -> float:
 if __name__ == "__main__":
     redact_log_records()  # every log line of the run, Hydra's included, with its secrets masked
     check_command_line(sys.argv[1:], CONF_DIR)
+    job_watch.install()  # hydra/launcher=submitit_slurm: follow the jobs with scontrol where sacct does not answer
     main()

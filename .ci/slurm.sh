@@ -5,9 +5,10 @@
 #   . .ci/slurm.sh                             # sourced: exports SLURM_CONF itself
 #
 # Installs Debian's slurm-wlm and munge when they are missing (as root), writes a slurm.conf of its own in
-# $SB3_TD3X_SLURM_DIR (default /var/tmp/sb3-td3x-slurm): one node (this machine, its cores and 90% of its memory),
-# one partition `debug`, no accounting (as on many small clusters), jobs requeueable, then starts munged, slurmctld
-# and slurmd and waits until the node is idle. Idempotent: a second call finds the daemons running and prints the
+# $SB3_TD3X_SLURM_DIR (default /var/tmp/sb3-td3x-slurm): one node (this machine, with 90% of its memory and at least
+# 4 CPUs: two jobs of sweeps/launcher/slurm.yaml's 2 CPUs side by side even on a 2-core machine), one partition
+# `debug`, no accounting (as on many small clusters), jobs requeueable, then starts munged, slurmctld and slurmd and
+# waits until the node is idle. Idempotent: a second call finds the daemons running and prints the
 # same path. A machine that already has a SLURM of its own (/etc/slurm/slurm.conf) is left alone: its conf is
 # printed and nothing is started.
 # Everything runs in a subshell, so that sourcing this file leaves the caller's shell as it was.
@@ -55,6 +56,7 @@ _sb3_td3x_start_slurm() (
 
   node="$(hostname -s)"
   cpus="$(nproc)"
+  [ "$cpus" -ge 4 ] || cpus=4  # config_overrides below: slurmd takes the CPUs from here, not from the hardware
   mem_mb="$(awk '/MemTotal/ {printf "%d", $2 / 1024 * 0.9}' /proc/meminfo)"
   mkdir -p "$DIR/state" "$DIR/spool"
   cat >"$CONF.new" <<CONF_END
@@ -81,6 +83,7 @@ SelectTypeParameters=CR_Core
 SchedulerType=sched/backfill
 MpiDefault=none
 ReturnToService=2
+SlurmdParameters=config_overrides
 JobRequeue=1
 KillWait=30
 MinJobAge=600

@@ -43,7 +43,7 @@ from omegaconf import OmegaConf
 
 from sb3_td3x.experiment.callbacks import EVALUATIONS_CSV
 from sb3_td3x.experiment.plotting import steps_axis
-from sb3_td3x.experiment.runner import CONFIG_FILE
+from sb3_td3x.experiment.run_folder import CONFIG_FILE
 from sb3_td3x.experiment.statistics import (  # noqa: F401  (iqm and mean: this module's API too)
     STATISTICS,
     difference_ci,

@@ -29,6 +29,7 @@ from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.vec_env import VecEnv, sync_envs_normalization
 from tqdm import tqdm
 
+from sb3_td3x.experiment import jobs
 from sb3_td3x.experiment.checkpoints import BEST, LAST, checkpoint_dir, save_checkpoint
 from sb3_td3x.experiment.errors import TrainingDiverged, TrainingInterrupted
 from sb3_td3x.experiment.value_bias import VALUE_FIELDS, Episode, EpisodeRecorder, cut_at_time_limit, measure_value_bias
@@ -303,15 +304,14 @@ class ProgressBar(BaseCallback):
 
 
 class StopOnSignal:
-    """While active, SIGINT and SIGTERM ask the checkpointers (one per seed of a batch) to save and stop instead of
-    killing the process.
+    """While active, SIGINT and SIGTERM (and, in a job submitit runs on SLURM, its time-out signal) ask the
+    checkpointers (one per seed of a batch) to save and stop instead of killing the process.
 
     The first signal restores the previous handlers, so a second Ctrl+C stops at once (the last periodic
     checkpoint is still there). Outside the main thread (Hydra's joblib launcher uses worker processes, whose
-    main thread is fine; a thread pool is not) signals cannot be caught and this does nothing.
+    main thread is fine; a thread pool is not) signals cannot be caught and this does nothing. What a job does once
+    its checkpoint is written (submitit's requeue) is :func:`sb3_td3x.experiment.jobs.after_stop`'s.
     """
-
-    SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
     def __init__(self, *checkpointers: Checkpointer) -> None:
         self.checkpointers = checkpointers  # one per seed in a seed batch
@@ -319,11 +319,15 @@ class StopOnSignal:
 
     def __enter__(self) -> StopOnSignal:
         if threading.current_thread() is threading.main_thread():
-            self.previous = {sig: signal.signal(sig, self._handle) for sig in self.SIGNALS}
+            for sig in jobs.stop_signals():
+                self.previous[sig] = signal.signal(sig, self._handle)
+                jobs.keep_handler(sig, self.previous[sig])
         return self
 
+    @jobs.ours
     def _handle(self, signum: int, frame: Any) -> None:
         self._restore()
+        jobs.note_signal(signum)
         for checkpointer in self.checkpointers:
             checkpointer.request_stop(signal.Signals(signum).name, 128 + signum)
 

@@ -1,6 +1,7 @@
-"""What ``run.py`` does around :func:`~sb3_td3x.experiment.runner.run_experiment`: pick the run folder, rebuild
-the config of a resumed run, mask the secrets in Hydra's own records, and turn user errors into a one-paragraph
-message and an exit status."""
+"""What ``run.py`` does around :func:`~sb3_td3x.experiment.runner.run_experiment`: check the command line before Hydra
+writes anything, rebuild the config of a resumed run, give each job of a multirun its share of the cores, mask the
+secrets in Hydra's own records, and turn user errors into a one-paragraph message and an exit status. Which folder a
+run trains in, and what may continue it, is :mod:`sb3_td3x.experiment.run_folder`'s."""
 
 from __future__ import annotations
 
@@ -18,15 +19,12 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from sb3_td3x.common.redaction import redact, redact_log_records
-from sb3_td3x.experiment.checkpoints import resume_checkpoint, seed_folders
+from sb3_td3x.experiment import jobs
+from sb3_td3x.experiment.checkpoints import seed_folders
 from sb3_td3x.experiment.errors import ConfigError, RunFilesNotWritten, TrainingDiverged, TrainingInterrupted
-from sb3_td3x.experiment.lock import RunFolderLock
-from sb3_td3x.experiment.resume import check_resume, saved_config
-from sb3_td3x.experiment.runner import CONFIG_FILE, run_experiment
-from sb3_td3x.experiment.schemas import ExperimentConfig, public_config, whole_float_problems
-
-# Config groups of conf/config.yaml; a resumed run keeps the choices it was started with.
-CONFIG_GROUPS = ("algo", "env", "eval", "logger", "video", "debug")
+from sb3_td3x.experiment.run_folder import check_new, check_resumable, config_for_resume
+from sb3_td3x.experiment.runner import run_experiment
+from sb3_td3x.experiment.schemas import CONFIG_GROUPS, whole_float_problems
 
 EXIT_CONFIG_ERROR = 2
 EXIT_DIVERGED = 3
@@ -61,12 +59,12 @@ def check_command_line(args: list[str], conf_dir: Path) -> None:
             elif key == "resume":
                 for value in values:
                     if value is not None:
-                        _check_resume_dir(Path(str(value)))
+                        check_resumable(Path(str(value)))
                         if len(values) == 1:
                             resume = OmegaConf.create({"resume": str(value)})
                             config_for_resume(resume, [a for a in args if re.match(r"^[+~]?[A-Za-z_][\w.]*=", a)])
             elif key == "run_dir" and not override.is_sweep_override() and values[0] is not None:
-                _check_new_run_dir(Path(str(values[0])))
+                check_new(Path(str(values[0])))
             if not key.startswith("hydra"):
                 plain.append(arg if not override.is_sweep_override() else f"{arg.split('=', 1)[0]}={values[0]}")
         _check_composes(plain, conf_dir)
@@ -91,15 +89,6 @@ def _check_composes(overrides: list[str], conf_dir: Path) -> None:
         raise ConfigError(f"{message} (python run.py --cfg job prints the whole config.)") from None
 
 
-def _check_new_run_dir(run_dir: Path) -> None:
-    from sb3_td3x.experiment.runner import refuse_existing_run
-
-    if run_dir.exists() and not run_dir.is_dir():
-        raise ConfigError(f"run_dir={run_dir} is a file, not a folder. Pass a folder for the run's records.")
-    RunFolderLock.check_free(run_dir)
-    refuse_existing_run(run_dir)
-
-
 def _check_group_choice(conf_dir: Path, group: str, choice: object) -> None:
     options = sorted(path.stem for path in (conf_dir / group).glob("*.yaml"))
     if choice is None or str(choice) in options:
@@ -111,24 +100,32 @@ def _check_group_choice(conf_dir: Path, group: str, choice: object) -> None:
     )
 
 
-def _check_resume_dir(run_dir: Path) -> None:
-    if run_dir.exists() and not run_dir.is_dir():
-        raise ConfigError(f"resume={run_dir} is a file. Pass the folder of an earlier run (it holds checkpoints/).")
-    RunFolderLock.check_free(run_dir)
-    if run_dir.is_dir() and not (run_dir / CONFIG_FILE).is_file() and not (run_dir / "checkpoints").is_dir():
-        raise ConfigError(
-            f"resume={run_dir}: {run_dir / CONFIG_FILE} does not exist. Pass the folder of an earlier run "
-            "(runs/<env>/<algo>/seed<N>/<date>), which holds config.yaml and checkpoints/."
-        )
-    resume_checkpoint(run_dir)
-
-
 def available_cores() -> int:
     """The CPUs this process may run on (its affinity mask where the OS has one, as joblib counts them)."""
     try:
         return len(os.sched_getaffinity(0))
     except AttributeError:  # macOS, Windows
         return os.cpu_count() or 1
+
+
+def default_threads(multirun: bool, launcher: DictConfig | dict) -> int | None:
+    """Torch threads for a run that leaves ``torch_threads`` unset (docs/experiments.md).
+
+    In a SLURM job, the cores it was given (``--cpus-per-task``: ``cpus_per_task`` of Hydra's submitit launcher);
+    in a multirun of a launcher that says its cores per job (``cpus_per_task`` of submitit's local launcher), those;
+    in a joblib multirun, the machine's cores shared among the jobs that run at once; else None: torch's default,
+    every core, for a single run.
+    """
+    cores = jobs.job_cores()
+    if cores is not None:
+        return cores
+    if not multirun:
+        return None
+    if launcher.get("cpus_per_task") is not None:
+        return int(launcher["cpus_per_task"])
+    if "n_jobs" in launcher:
+        return threads_per_job(launcher.get("n_jobs"), available_cores())
+    return None
 
 
 def threads_per_job(n_jobs: int | None, cores: int) -> int | None:
@@ -159,9 +156,8 @@ def main(cfg: DictConfig) -> float:
             if cfg.seeds is not None and cfg.seed_run_dirs is None:
                 cfg.seed_run_dirs = [str(d) for d in seed_folders(hydra_cfg.runtime.output_dir, cfg.seeds, cfg.seed)]
             cfg.run_dir = hydra_cfg.runtime.output_dir
-        if cfg.torch_threads is None and hydra_cfg.mode == RunMode.MULTIRUN:
-            # Jobs side by side share the cores; a single run keeps them all (docs/experiments.md).
-            cfg.torch_threads = threads_per_job(hydra_cfg.launcher.get("n_jobs"), available_cores())
+        if cfg.torch_threads is None:
+            cfg.torch_threads = default_threads(hydra_cfg.mode == RunMode.MULTIRUN, hydra_cfg.launcher)
         return run_experiment(cfg)
     except (ConfigError, OmegaConfBaseException) as error:
         _exit(f"Error: {_one_paragraph(error)}", EXIT_CONFIG_ERROR)
@@ -172,6 +168,7 @@ def main(cfg: DictConfig) -> float:
             return math.nan
         _exit(f"Error: {error}", EXIT_DIVERGED)
     except TrainingInterrupted as error:
+        jobs.after_stop(error.exit_code, str(error))  # in a job submitit runs: submitit requeues it
         _exit(str(error), error.exit_code)
     except RunFilesNotWritten as error:
         _exit(f"Error: {_one_paragraph(error)}", EXIT_NOT_WRITTEN)
@@ -198,39 +195,6 @@ def redact_hydra_records(hydra_cfg: DictConfig) -> None:
         tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")  # jobs of a multirun may rewrite multirun.yaml together
         tmp.write_text(OmegaConf.to_yaml(OmegaConf.create(redacted)))
         os.replace(tmp, path)
-
-
-def config_for_resume(cfg: DictConfig, overrides: list[str]) -> DictConfig:
-    """The config the run ``cfg.resume`` trained with (kept in its checkpoint), with the command line's overrides.
-
-    ``python run.py resume=DIR total_timesteps=2000000`` continues DIR to 2M steps with everything else as saved.
-    Every change is checked against the checkpoint (:func:`~sb3_td3x.experiment.resume.check_resume`): a resume may
-    change the length, the evaluation and checkpoint frequencies, logging and the device, nothing that enters the
-    computation. A config group may change where it is one of those (``logger=wandb``, ``video=final``).
-    """
-    run_dir = Path(cfg.resume)
-    _check_resume_dir(run_dir)
-    saved = saved_config(run_dir, resume_checkpoint(run_dir), CONFIG_FILE)
-    resumed = OmegaConf.merge(OmegaConf.structured(ExperimentConfig), OmegaConf.create(saved))
-    for override in OverridesParser.create().parse_overrides(overrides):
-        key = override.key_or_group
-        if key == "resume" or key.startswith("hydra"):
-            continue
-        if key in CONFIG_GROUPS:
-            if key not in ("logger", "video"):
-                raise ConfigError(
-                    f"resume={run_dir} continues the run with its saved config, so '{override.input_line}' cannot change "
-                    f"the config group '{key}'. Drop it, or start a new run without resume=."
-                )
-            from sb3_td3x.experiment.schemas import compose_config
-
-            resumed[key] = compose_config([override.input_line])[key]
-            continue
-        OmegaConf.update(resumed, key, override.value(), merge=False)
-    resumed.resume = str(run_dir)
-    resumed.run_dir = str(run_dir)
-    check_resume(saved, public_config(resumed), run_dir)
-    return resumed
 
 
 def _one_paragraph(error: Exception) -> str:

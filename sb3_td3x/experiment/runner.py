@@ -8,7 +8,6 @@ sets it to Hydra's output folder), or ``cfg.resume`` when continuing a run.
 from __future__ import annotations
 
 import errno
-import json
 import logging
 import os
 import platform
@@ -25,19 +24,17 @@ from omegaconf import DictConfig, OmegaConf
 
 from sb3_td3x.common.random_streams import RandomStreams, detached_streams
 from sb3_td3x.common.redaction import redact
+from sb3_td3x.experiment import jobs
 from sb3_td3x.experiment.algos import algorithm_class, build_algorithm
 from sb3_td3x.experiment.callbacks import (
-    EVALUATIONS_CSV,
     Checkpointer,
     DivergenceCheck,
     PeriodicEvaluation,
     ProgressBar,
     StopOnSignal,
-    write_atomically,
 )
 from sb3_td3x.experiment.checkpoints import (
     LAST,
-    META_FILE,
     checkpoint_dir,
     find_checkpoint,
     load_checkpoint,
@@ -46,20 +43,25 @@ from sb3_td3x.experiment.checkpoints import (
 )
 from sb3_td3x.experiment.envs import make_eval_env, make_train_env
 from sb3_td3x.experiment.errors import ConfigError, RunFilesNotWritten, TrainingDiverged, TrainingInterrupted
-from sb3_td3x.experiment.lock import RunFolderLock
 from sb3_td3x.experiment.loggers import build_logger, start_wandb
 from sb3_td3x.experiment.plotting import LEARNING_CURVE_PNG, plot_learning_curve, record_video
 from sb3_td3x.experiment.resume import check_resume, saved_config
+from sb3_td3x.experiment.run_folder import (
+    CONFIG_FILE,
+    NEW,
+    RESTARTED,
+    RESUMED,
+    RUN_LOG,
+    RunFolder,
+    checkpoint_step,
+    where_to_start,
+)
 from sb3_td3x.experiment.schemas import check_config, public_config
 from sb3_td3x.experiment.statistics import STATISTICS, seed_statistic
 from sb3_td3x.td3x.seed_batch import SeedBatch, acting_as, current_seed
 
 log = logging.getLogger(__name__)
 
-CONFIG_FILE = "config.yaml"
-SUMMARY_FILE = "summary.json"
-PROVENANCE_FILE = "provenance.jsonl"
-RUN_LOG = "run.log"  # Hydra's job log (run.py), per seed in a batch
 
 
 def run_experiment(
@@ -95,6 +97,15 @@ def run_experiment(
     if cfg.resume is not None:
         cfg.run_dir = str(cfg.resume)
     OmegaConf.resolve(cfg)  # pins ${now:...} and the env defaults once
+    start = where_to_start(cfg)  # a requeued job continues its own folder (sb3_td3x.experiment.run_folder)
+    if start.how != NEW and start.how != RESUMED:
+        log.info(
+            "This job (SLURM job %s) started again after a requeue: %s in %s",
+            jobs.current_job().name,  # type: ignore[union-attr]
+            "it resumes its run" if start.resume is not None else "its earlier start left no checkpoint, so it starts afresh",
+            start.run_dir,
+        )
+    cfg.run_dir, cfg.resume = str(start.run_dir), (str(start.resume) if start.resume is not None else None)
     check_config(cfg)
     if seeds_aggregate not in STATISTICS:
         raise ConfigError(f"seeds_aggregate={seeds_aggregate!r} must be one of {', '.join(STATISTICS)}")
@@ -102,8 +113,8 @@ def run_experiment(
         torch.set_num_threads(cfg.torch_threads)
     try:
         if cfg.seeds is not None:
-            return _run_seeds(cfg, report, seeds_aggregate, report_seeds)
-        return _run_one(cfg, report)
+            return _run_seeds(cfg, start.how, report, seeds_aggregate, report_seeds)
+        return _run_one(cfg, start.how, report)
     except RunFilesNotWritten as error:
         raise RunFilesNotWritten(_not_written(cfg, str(error))) from error
     except OSError as error:
@@ -118,7 +129,7 @@ _DISK_ERRORS = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS)
 
 def _not_written(cfg: DictConfig, what: str) -> str:
     run_dir = seed_run_dirs(cfg)[0] if cfg.seeds is not None else Path(cfg.run_dir)
-    step = _checkpoint_step(find_checkpoint(checkpoint_dir(run_dir, LAST)))
+    step = checkpoint_step(find_checkpoint(checkpoint_dir(run_dir, LAST)))
     if step is None:
         return f"The run in {run_dir} stopped: {what}. It had written no checkpoint yet: free some space and start it again in a new run_dir."
     return (
@@ -127,8 +138,8 @@ def _not_written(cfg: DictConfig, what: str) -> str:
     )
 
 
-def _run_one(cfg: DictConfig, report: Callable[[int, float], None] | None) -> float:
-    run = _prepare(cfg)
+def _run_one(cfg: DictConfig, how: str, report: Callable[[int, float], None] | None) -> float:
+    run = _prepare(cfg, how)
     try:
         if report is not None:
             run.evaluation.listeners.append(_reporting(report, run.checkpointer))
@@ -153,7 +164,7 @@ class _Run:
     run_dir: Path
     started: float
     closers: list[Callable[[], object]] = field(default_factory=list)
-    lock: RunFolderLock | None = None
+    folder: RunFolder | None = None
     resume_from: Path | None = None
     model: Any = None
     evaluation: PeriodicEvaluation | None = None
@@ -165,19 +176,18 @@ class _Run:
     succeeded: bool = False
 
 
-def _prepare(cfg: DictConfig, restart: bool = False) -> _Run:
-    """Everything a run does before ``model.learn``: lock the folder, build or load the model, then (once the
+def _prepare(cfg: DictConfig, how: str) -> _Run:
+    """Everything a run does before ``model.learn``: own the folder, build or load the model, then (once the
     checkpoint has loaded and the config is accepted) the records, loggers and callbacks. On an error, what was
     opened is closed and nothing of the run's records has been written.
 
-    :param restart: start afresh in a folder that holds records but no checkpoint (a seed of a resumed batch that
-        was stopped before its first checkpoint); otherwise a new run refuses a folder that holds a run
+    :param how: how the run starts in its folder (:func:`~sb3_td3x.experiment.run_folder.where_to_start`): a new
+        run refuses a folder that holds a run; ``RESTARTED`` starts afresh in a folder whose earlier session left no
+        checkpoint (a requeued job, or a seed of a resumed batch, stopped before its first checkpoint)
     """
     run = _Run(cfg, Path(cfg.run_dir), time.time())
-    run.lock = RunFolderLock.acquire(run.run_dir)
+    run.folder = RunFolder.claim(run.run_dir, how)
     try:
-        if cfg.resume is None and not restart:
-            refuse_existing_run(run.run_dir)
         config = public_config(cfg)
         train_env = make_train_env(cfg.env, cfg.n_envs, cfg.seed)
         run.closers.append(train_env.close)
@@ -185,10 +195,7 @@ def _prepare(cfg: DictConfig, restart: bool = False) -> _Run:
         run.closers.append(eval_env.close)
         experiment_state, session = _model(run, config, train_env)
         model = run.model
-        write_atomically(run.run_dir / CONFIG_FILE, OmegaConf.to_yaml(OmegaConf.create(config)))
-        with open(run.run_dir / PROVENANCE_FILE, "a") as file:  # one line per session: a run may span several
-            record = {"started": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "at_step": int(model.num_timesteps), **session}
-            file.write(json.dumps(redact({**record, **provenance()})) + "\n")
+        run.folder.start_session(config, model.num_timesteps, session, provenance())
         run.run_name = f"{cfg.env.name}_{cfg.algo.name}_seed{cfg.seed}"
         _loggers(run, config)
         _callbacks(run, eval_env, config, experiment_state)
@@ -286,33 +293,6 @@ def _callbacks(run: _Run, eval_env: Any, config: dict[str, Any], experiment_stat
     run.callbacks = [DivergenceCheck(), evaluation, checkpointer] + ([run.progress] if run.progress is not None else [])
 
 
-def refuse_existing_run(run_dir: Path) -> None:
-    """A :class:`ConfigError` when ``run_dir`` already holds a run's records: a new run never reuses a folder."""
-    if not run_dir.is_dir():
-        return
-    checkpoints = run_dir / "checkpoints"
-    held = [name for name in (CONFIG_FILE, EVALUATIONS_CSV, SUMMARY_FILE) if (run_dir / name).exists()]
-    if checkpoints.is_dir() and any(checkpoints.iterdir()):
-        found = find_checkpoint(checkpoint_dir(run_dir, LAST))
-        step = _checkpoint_step(found)
-        held.append(f"a checkpoint at step {step}" if step is not None else "checkpoints/")
-    if held:
-        raise ConfigError(
-            f"run_dir={run_dir} already holds a run ({', '.join(held)}). Continue that run with: python run.py "
-            f"resume={run_dir}, or start this one in a new folder (a new run_dir, or none: the default names a new "
-            "folder for each launch)."
-        )
-
-
-def _checkpoint_step(folder: Path | None) -> int | None:
-    if folder is None:
-        return None
-    try:
-        return int(json.loads((folder / META_FILE).read_text())["num_timesteps"])
-    except (OSError, ValueError, KeyError, TypeError):
-        return None
-
-
 def check_buffer_fits(cfg: DictConfig, env: Any) -> None:
     """A :class:`ConfigError` when the replay buffer alone would need more memory than the machine has."""
     import numpy as np
@@ -364,7 +344,8 @@ def _finish(run: _Run) -> float:
     }
     if cfg.seeds is not None:
         summary["trained_with_seeds"] = list(cfg.seeds)  # one process, sb3_td3x.SeedBatch
-    (run.run_dir / SUMMARY_FILE).write_text(json.dumps(redact(summary), indent=2))
+    assert run.folder is not None
+    run.folder.write_summary(summary)
     if cfg.video is not None:
         path = record_video(
             model, cfg.env, cfg.video, run.run_dir / f"video.{cfg.video.format}", cfg.seed + cfg.eval.seed_offset
@@ -398,9 +379,9 @@ def _close(run: _Run) -> None:
             )
         except OSError as error:  # a full disk: the curve is in evaluations.csv, and the error that ended the run goes on
             log.warning("The learning curve could not be drawn: %s", error)
-    if run.lock is not None:
-        run.lock.release()
-        run.lock = None
+    if run.folder is not None:
+        run.folder.release()
+        run.folder = None
 
 
 # Many seeds in one process ------------------------------------------------------------------------------------------
@@ -478,6 +459,7 @@ class _SeedReports:
 
 def _run_seeds(
     cfg: DictConfig,
+    how: str,
     report: Callable[[int, float], None] | None,
     statistic: str,
     report_seeds: Callable[[int, dict[int, float]], None] | None,
@@ -495,7 +477,7 @@ def _run_seeds(
         )
     caller = RandomStreams().state()
     try:
-        streams = _prepare_seeds(cfg, seeds, dirs, runs, handlers)
+        streams = _prepare_seeds(cfg, how, seeds, dirs, runs, handlers)
         RandomStreams().set_state(caller)
         reports = _SeedReports(seeds, runs, statistic, report, report_seeds)
         for index, run in enumerate(runs):
@@ -523,10 +505,11 @@ def _run_seeds(
 
 
 def _prepare_seeds(
-    cfg: DictConfig, seeds: list[int], dirs: list[Path], runs: list[_Run], handlers: list[logging.Handler]
+    cfg: DictConfig, how: str, seeds: list[int], dirs: list[Path], runs: list[_Run], handlers: list[logging.Handler]
 ) -> list[RandomStreams]:
     """Each seed's run prepared as its lone run is (into ``runs``, its log file into ``handlers``); returns each
-    model's random streams, detached where its lone run stands when it calls learn()."""
+    model's random streams, detached where its lone run stands when it calls learn(). A seed of a batch that
+    continues (resumed, or requeued) but has no checkpoint starts afresh in its folder."""
     streams = []
     for index, (seed, run_dir) in enumerate(zip(seeds, dirs)):
         seed_cfg = OmegaConf.create(OmegaConf.to_container(cfg, resolve=False))
@@ -539,7 +522,7 @@ def _prepare_seeds(
         if (handler := _seed_log_file(run_dir, index)) is not None:
             handlers.append(handler)
         with acting_as(index):
-            runs.append(_prepare(seed_cfg, restart=cfg.resume is not None))
+            runs.append(_prepare(seed_cfg, how if resumes else (NEW if how == NEW else RESTARTED)))
             streams.append(detached_streams(runs[-1].model))
     return streams
 

@@ -209,8 +209,19 @@ def preset_config(kwargs: dict[str, Any]) -> dict[str, Any]:
     return config
 
 
-def _if_resume(resume: str | None, when_resuming: Any, otherwise: Any) -> Any:
-    return otherwise if resume is None else when_resuming
+def _run_dir(resume: str | None, run_dir: str) -> str:
+    from sb3_td3x.experiment.run_folder import hydra_run_dir
+
+    return hydra_run_dir(resume, run_dir)
+
+
+def _records_subdir(resume: str | None, restarts: Any = 0) -> str:
+    """Cached, so that every reading names the same folder (a resume's is dated). ``restarts`` (the SLURM job's
+    restart count) is in the cache's key only: a requeued job names its own even with the first start's cache
+    (Hydra's submitit launcher copies the launching process's cache into each job)."""
+    from sb3_td3x.experiment.run_folder import hydra_records_subdir
+
+    return hydra_records_subdir(resume)
 
 
 def _first_seed(seeds: Any) -> int:
@@ -225,9 +236,12 @@ def _seed_label(seed: int, seeds: Any) -> str:
 
 
 register_configs()
-if not OmegaConf.has_resolver("td3x.if_resume"):
-    # conf/config.yaml: a resumed run goes on in the folder it resumes
-    OmegaConf.register_new_resolver("td3x.if_resume", _if_resume)
+if not OmegaConf.has_resolver("td3x.run_dir"):
+    # conf/config.yaml: the folder a run trains in; a resumed run, or a job started again, goes on in its own
+    OmegaConf.register_new_resolver("td3x.run_dir", _run_dir)
+if not OmegaConf.has_resolver("td3x.records_subdir"):
+    # conf/config.yaml: Hydra's record of each launch; a resumed or requeued run adds its own beside the first
+    OmegaConf.register_new_resolver("td3x.records_subdir", _records_subdir, use_cache=True)
 if not OmegaConf.has_resolver("td3x.first_seed"):
     OmegaConf.register_new_resolver("td3x.first_seed", _first_seed)
 if not OmegaConf.has_resolver("td3x.seed_label"):
@@ -264,6 +278,10 @@ def whole_float_problems(overrides: list[str]) -> list[str]:
             key, text = match.groups()
             problems.append(f"{arg}: {key} is an integer, write {key}={int(value)} or {key}=int({text})")
     return problems
+
+
+#: Config groups of conf/config.yaml; a resumed run keeps the choices it was started with.
+CONFIG_GROUPS = ("algo", "env", "eval", "logger", "video", "debug")
 
 
 def compose_config(overrides: list[str] | None = None, conf_dir: Path = CONF_DIR) -> DictConfig:

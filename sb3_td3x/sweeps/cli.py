@@ -203,7 +203,7 @@ def _run(args: argparse.Namespace) -> int:
 def _launch(args: argparse.Namespace, storage_url: str, study_dir: Path, study_name: str, config_dir: Path) -> int:
     import optuna
 
-    from sb3_td3x.sweeps.launch import load_launcher, submit_workers
+    from sb3_td3x.sweeps.launch import load_launcher, submit_workers, wait_for_workers
     from sb3_td3x.sweeps.storage import open_storage
     from sb3_td3x.sweeps.worker import check_heartbeat_settings
 
@@ -218,19 +218,19 @@ def _launch(args: argparse.Namespace, storage_url: str, study_dir: Path, study_n
             "SQLite on a cluster's shared file system is fragile with many workers; prefer --storage postgresql://..."
         )
     worker_argv = _worker_argv(args, _password_to_environment(storage_url), study_dir, config_dir)
-    jobs = submit_workers(cluster, executor_params, args.workers, main, worker_argv)
+    jobs = submit_workers(cluster, executor_params, args.workers, worker_argv)
     print(f"submitted {len(jobs)} {cluster} worker job(s): {', '.join(str(job.job_id) for job in jobs)}")
     print(f"job logs: {study_dir / 'jobs'}; the last worker writes the results into {study_dir}")
     if not args.wait:
         return 0
-    codes = []
-    for job in jobs:
-        try:
-            codes.append(job.result())
-        except Exception as err:  # noqa: BLE001  (submitit's FailedJobError, UncompletedJobError: the job's log says why)
-            raise SweepError(
-                f"worker job {job.job_id} failed: {str(err).strip().splitlines()[0]}; see {study_dir / 'jobs'}"
-            ) from None
+    ends = wait_for_workers(jobs)  # each job to its real end, through requeues
+    failed = [end for end in ends if "error" in end]
+    if failed:
+        raise SweepError(
+            f"worker job {failed[0]['job']} ended {failed[0]['state']} without a result ({failed[0]['error']}); "
+            f"see {study_dir / 'jobs'}. The study keeps every trial: run the same command again to continue it."
+        )
+    codes = [int(end["result"]) for end in ends]
     print(f"workers exited with {codes}")
     return max(codes)
 

@@ -6,11 +6,16 @@ A launcher file is a ``hydra/launcher`` config of ``hydra-submitit-launcher`` (`
 is what a job runs: not one Hydra job per override combination, but one sweep worker
 (:func:`sb3_td3x.sweeps.worker.run_worker`), which takes trials from the shared study until its budget is spent.
 Hydra's launcher cannot run that: its jobs never see the Optuna trial, so they could not report or be pruned.
+
+A worker job that SLURM requeues (``scontrol requeue``, a preemption with requeue, or submitit's requeue
+``signal_delay_s`` before the time limit, at most ``max_num_timeout`` times) resumes the trial it was training from
+the trial folder's checkpoint when it starts again, and only its last start gives submitit a result: ``--wait``
+follows each job to its real end (:func:`wait_for_workers`).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -19,6 +24,11 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from sb3_td3x.sweeps.errors import SweepSpecError
+
+try:
+    from submitit.helpers import Checkpointable
+except ImportError:  # without the cluster extra: load_launcher says what to install
+    Checkpointable = object  # type: ignore[assignment,misc]
 from sb3_td3x.sweeps.spec import check_readable_file
 
 _LAUNCHERS = {
@@ -69,14 +79,44 @@ def load_launcher(path: str | Path, job_folder: Path, job_name: str) -> tuple[st
     return cluster, executor_params
 
 
-def submit_workers(
-    cluster: str, executor_params: dict[str, Any], n_workers: int, job: Callable[[list[str]], int], argv: list[str]
-) -> list[Any]:
-    """Submit ``n_workers`` jobs that each run ``job(argv)``; return submitit's job handles."""
+class WorkerJob(Checkpointable):
+    """One sweep worker as a submitit job: ``python -m sb3_td3x.sweeps <argv>``. Checkpointable, so that submitit
+    requeues it at its time limit (what a running trial needs is in its checkpoint and in the study)."""
+
+    def __call__(self, argv: list[str]) -> int:
+        from sb3_td3x.experiment import jobs
+        from sb3_td3x.sweeps.cli import main
+
+        code = main(argv)
+        if jobs.received() is not None:  # stopped by a signal: SLURM (or submitit) says how the job goes on
+            jobs.after_stop(code, "The sweep worker stopped on a signal; its trial was queued again.")
+        return code
+
+
+def submit_workers(cluster: str, executor_params: dict[str, Any], n_workers: int, argv: list[str]) -> list[Any]:
+    """Submit ``n_workers`` jobs that each run a sweep worker with ``argv``; return submitit's job handles."""
     import submitit
 
+    from sb3_td3x.experiment import job_watch
+
+    job_watch.install()
     params = dict(executor_params)
     parameters = params.pop("parameters")
     executor = submitit.AutoExecutor(cluster=cluster, **params)
     executor.update_parameters(**parameters)
-    return executor.map_array(job, [list(argv) for _ in range(n_workers)])
+    return executor.map_array(WorkerJob(), [list(argv) for _ in range(n_workers)])
+
+
+def wait_for_workers(jobs: list[Any]) -> list[dict[str, Any]]:
+    """Wait for each job's real end (through requeues) and print it; returns :func:`job_watch.job_end` of each."""
+    from sb3_td3x.experiment.job_watch import job_end
+
+    ends = []
+    for job in jobs:
+        end = job_end(job)
+        requeued = f", requeued {end['requeued']} time(s)" if end["requeued"] else ""
+        outcome = f"exit {end['result']}" if "error" not in end else f"no result: {end['error']}"
+        print(f"worker job {end['job']}: {end['state']}{requeued}, {outcome}", file=sys.stdout, flush=True)
+        ends.append(end)
+    return ends
+

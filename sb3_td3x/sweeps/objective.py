@@ -18,6 +18,7 @@ trial's value is the aggregate. The trial's user attributes add ``seeds``, ``see
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 import socket
@@ -30,9 +31,12 @@ import optuna
 from omegaconf import DictConfig
 
 from sb3_td3x.common.redaction import redact
+from sb3_td3x.experiment import jobs
 from sb3_td3x.experiment.schemas import compose_config
 from sb3_td3x.sweeps.errors import SweepSpecError
 from sb3_td3x.sweeps.spec import SweepSpec, override_value
+
+logger = logging.getLogger(__name__)
 
 #: ``run_experiment(cfg, report)``: trains, calls ``report(num_timesteps, mean_return)`` after every evaluation,
 #: returns the final evaluation's mean return. A trial of several seeds also passes ``seeds_aggregate`` and
@@ -184,6 +188,8 @@ class TrialObjective:
             trial.set_user_attr("seeds_aggregate", self.spec.seeds_aggregate)
         trial.set_user_attr("run_dir", str(run_dir))
         trial.set_user_attr("worker", worker_id())
+        job = jobs.current_job()
+        trial.set_user_attr("job", job.record() if job is not None else None)  # a requeued worker finds its trials
 
     def _run(self, trial: optuna.Trial) -> TrialResult:
         from sb3_td3x.experiment.errors import TrainingDiverged, TrainingInterrupted
@@ -196,6 +202,10 @@ class TrialObjective:
             seeds, run_dir = self.spec.trial_seeds(trial.number), self.run_dir(trial.number)
         overrides = self.overrides(values, seeds, run_dir, resume=resume_dir is not None)
         self._record_start(trial, overrides, seeds, run_dir)
+        if resume_dir is not None:
+            logger.info("trial %d resumes the run of the trial it repeats, in %s, from its checkpoint", trial.number, run_dir)
+        else:
+            logger.info("trial %d started in %s", trial.number, run_dir)
 
         evaluations: list[float] = []
         steps: list[int] = []

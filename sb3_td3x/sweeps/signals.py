@@ -15,6 +15,10 @@ the garbage collector (SQLAlchemy has some), where Python drops the exception wi
 While the trial runs, such a dropped :class:`SignalInterrupt` is sent again a millisecond later, so that it acts in the
 trial's own code; it is never lost, and the traceback is not printed.
 
+In a worker that submitit runs on SLURM, submitit's time-out signal (``SIGUSR2``) is held and acts like the others;
+once the trial is recorded and queued again, :func:`sb3_td3x.experiment.jobs.after_stop` hands over to submitit, which
+requeues the job.
+
 Signals can only be handled in the main thread; elsewhere this does nothing.
 """
 
@@ -28,11 +32,11 @@ import threading
 from collections.abc import Iterator
 from typing import Any
 
-SIGNALS = (signal.SIGINT, signal.SIGTERM)
+from sb3_td3x.experiment import jobs
 
 
 class SignalInterrupt(KeyboardInterrupt):
-    """A signal that arrived while a trial ran; ``signal_name`` is ``"SIGINT"`` or ``"SIGTERM"``."""
+    """A signal that arrived while a trial ran; ``signal_name`` is ``"SIGINT"``, ``"SIGTERM"`` (or submitit's)."""
 
     def __init__(self, signal_name: str) -> None:
         self.signal_name = signal_name
@@ -40,16 +44,20 @@ class SignalInterrupt(KeyboardInterrupt):
 
 
 class HeldSignals:
-    """Hold SIGINT and SIGTERM for as long as the ``with`` block runs; :attr:`received` names the first that came."""
+    """Hold SIGINT and SIGTERM (and submitit's signal in its jobs) for as long as the ``with`` block runs;
+    :attr:`received` names the first that came."""
 
     def __init__(self) -> None:
         self.received: str | None = None  #: "SIGINT" or "SIGTERM", once one has arrived
         self._previous: dict[int, Any] = {}
         self._active = threading.current_thread() is threading.main_thread()
+        self._signals = jobs.stop_signals()
 
     def __enter__(self) -> HeldSignals:
         if self._active:
-            self._previous = {sig: signal.getsignal(sig) for sig in SIGNALS}
+            self._previous = {sig: signal.getsignal(sig) for sig in self._signals}
+            for sig, handler in self._previous.items():
+                jobs.keep_handler(sig, handler)
             self.hold()
         return self
 
@@ -92,12 +100,15 @@ class HeldSignals:
 
     def _install(self, handler: Any) -> None:
         if self._active:
-            for sig in SIGNALS:
+            for sig in self._signals:
                 signal.signal(sig, handler)
 
+    @jobs.ours
     def _remember(self, signum: int, frame: Any) -> None:
         self.received = self.received or signal.Signals(signum).name
+        jobs.note_signal(signum)
 
+    @jobs.ours
     def _interrupt(self, signum: int, frame: Any) -> None:
         self._remember(signum, frame)
         raise SignalInterrupt(signal.Signals(signum).name)

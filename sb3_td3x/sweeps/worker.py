@@ -126,6 +126,7 @@ def claim_trial(study: optuna.Study, spec: SweepSpec, study_storage: StudyStorag
         warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
         # ask() warns that heartbeats are meant for Study.optimize; this loop records them itself (storage.heartbeat)
         warnings.filterwarnings("ignore", message="Heartbeat of storage is supposed to be used", category=UserWarning)
+        fail_trials_of_earlier_start(study)
         fail_stale_trials(study)
         trials = study.get_trials(deepcopy=False)
         queued = any(t.state == TrialState.WAITING for t in trials)
@@ -137,6 +138,32 @@ def claim_trial(study: optuna.Study, spec: SweepSpec, study_storage: StudyStorag
         if study_storage.heartbeat_interval is not None:  # a trial without any heartbeat could never go stale
             study_storage.storage.record_heartbeat(trial._trial_id)
         return trial
+
+
+def fail_trials_of_earlier_start(study: optuna.Study) -> list[int]:
+    """In a SLURM job that started again (requeued), the trials its earlier start left RUNNING: that start has
+    ended (SLURM starts a job again only once it has), so each is marked FAIL and queued again at once, resuming
+    from its folder's checkpoint, instead of waiting for the heartbeat's grace period. Returns their numbers."""
+    from sb3_td3x.experiment import jobs
+
+    job = jobs.current_job()
+    if job is None or job.restarts == 0:
+        return []
+    failed = []
+    for frozen in study.get_trials(deepcopy=False, states=(TrialState.RUNNING,)):
+        if not job.is_earlier_run_of_this_job(frozen.user_attrs.get("job")):
+            continue
+        reason = f"its worker, SLURM job {job.name}, was stopped (requeued) before it recorded the trial"
+        study._storage.set_trial_user_attr(frozen._trial_id, "fail_reason", reason)
+        study._storage.set_trial_user_attr(frozen._trial_id, RESUMABLE, True)
+        try:
+            study._storage.set_trial_state_values(frozen._trial_id, state=TrialState.FAIL)
+        except optuna.exceptions.UpdateFinishedTrialError:
+            continue
+        requeue(study, frozen.number)
+        logger.info("trial %d: %s; queued again to resume from its checkpoint", frozen.number, reason)
+        failed.append(frozen.number)
+    return failed
 
 
 def check_heartbeat_settings(study: optuna.Study, study_storage: StudyStorage, record: bool = True) -> None:
@@ -266,7 +293,6 @@ def run_worker(
                     on_finished(study)
                 return WorkerSummary(ran, study_finished=True)
 
-            logger.info("trial %d started in %s", trial.number, objective.run_dir(trial.number))
             result = _run_trial(trial, objective, study_storage, signals)
             told = record(study, trial, result)
             ran.append(trial.number)

@@ -16,7 +16,7 @@ import pytest
 import torch
 
 from sb3_td3x.experiment.checkpoints import META_FILE, find_checkpoint, save_checkpoint, verify_checkpoint
-from sb3_td3x.experiment.cli import config_for_resume
+from sb3_td3x.experiment.run_folder import config_for_resume
 from sb3_td3x.experiment.errors import ConfigError
 from sb3_td3x.experiment.schemas import compose_config
 

@@ -1,0 +1,264 @@
+"""The run folder: which folder a run trains in, who owns it, what may continue it, and the records it keeps.
+
+Every way of starting a run goes through this module: ``run.py`` (its Hydra resolvers name the folder, and
+``check_command_line`` refuses a folder in use or already used before Hydra writes anything into it), the Python API
+(:func:`~sb3_td3x.experiment.runner.run_experiment`), the sweeps (a trial's folder) and a scheduler job that starts
+again after a requeue. The rules:
+
+1. A new run takes a folder that holds no run (:func:`refuse_existing_run`).
+2. ``resume=DIR`` continues DIR with the config its checkpoint trained with; a resume may change only what does not
+   enter the computation (:func:`config_for_resume`, :mod:`sb3_td3x.experiment.resume`).
+3. A SLURM job that starts again (``scontrol requeue``, a preemption with requeue, submitit's requeue at the time
+   limit) continues the folder its earlier start trained in, found by the job's identity
+   (:mod:`sb3_td3x.experiment.jobs`), never by the clock: the folder its ``run_dir`` names when that folder's last
+   session was this job (a multirun job's folder, a fixed ``run_dir``), else the sibling folder whose last session
+   was this job (``run_dir``'s default names a new dated folder at each launch). It resumes from the checkpoint, or,
+   stopped before its first checkpoint, starts afresh in the same folder.
+4. One process owns a folder at a time: an OS lock on ``.lock`` (:mod:`sb3_td3x.experiment.lock`); a second live
+   owner is refused with the holder's name, a requeued job included.
+
+Records: ``config.yaml`` (what trains, rewritten at each session), ``provenance.jsonl`` (one line per session: its
+start, its step, the job, what it resumed from, what changed), ``summary.json`` (at the end).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from omegaconf import DictConfig, OmegaConf
+
+from sb3_td3x.common.redaction import redact
+from sb3_td3x.experiment import jobs
+from sb3_td3x.experiment.callbacks import EVALUATIONS_CSV, write_atomically
+from sb3_td3x.experiment.checkpoints import LAST, META_FILE, checkpoint_dir, find_checkpoint, resume_checkpoint
+from sb3_td3x.experiment.errors import ConfigError
+from sb3_td3x.experiment.lock import RunFolderLock
+
+CONFIG_FILE = "config.yaml"
+SUMMARY_FILE = "summary.json"
+PROVENANCE_FILE = "provenance.jsonl"
+RUN_LOG = "run.log"  # Hydra's job log (run.py), per seed in a batch
+
+#: How a session started in its folder (``provenance.jsonl``'s ``start``).
+NEW, RESUMED, REQUEUED, RESTARTED = "new", "resume", "requeue", "restart after requeue"
+
+
+# Naming: conf/config.yaml's hydra.run.dir and hydra.output_subdir -----------------------------------------------------
+def hydra_run_dir(resume: str | None, run_dir: str) -> str:
+    """``hydra.run.dir``: the folder a ``run.py`` run trains in (rules 2 and 3)."""
+    if resume is not None:
+        return str(resume)
+    found = requeued_folder(Path(run_dir))
+    return str(found) if found is not None else str(run_dir)
+
+
+def hydra_records_subdir(resume: str | None) -> str:
+    """``hydra.output_subdir``: where Hydra writes its record of this launch in the run folder. The first launch's
+    stays in ``.hydra``; a resume adds ``.hydra/resumed_<date>``, a job started again ``.hydra/requeued_<n>``."""
+    if resume is not None:
+        return f".hydra/resumed_{time.strftime('%Y-%m-%d_%H-%M-%S')}"
+    job = jobs.current_job()
+    if job is not None and job.restarts > 0:
+        return f".hydra/requeued_{job.restarts}"
+    return ".hydra"
+
+
+# What a folder holds ---------------------------------------------------------------------------------------------------
+def last_session(run_dir: Path) -> dict[str, Any] | None:
+    """The last line of the folder's ``provenance.jsonl`` (None when there is none, or it cannot be read)."""
+    try:
+        lines = (run_dir / PROVENANCE_FILE).read_text().splitlines()
+    except (OSError, UnicodeDecodeError):
+        return None
+    for line in reversed(lines):
+        try:
+            record = json.loads(line)
+        except ValueError:
+            continue  # a line cut by a full disk: the one before it tells
+        if isinstance(record, dict):
+            return record
+    return None
+
+
+def trained_by_this_job_before(run_dir: Path) -> bool:
+    """Whether the folder's last session was this scheduler job, before it started again (rule 3)."""
+    job = jobs.current_job()
+    if job is None or job.restarts == 0 or not run_dir.is_dir():
+        return False
+    session = last_session(run_dir)
+    return session is not None and job.is_earlier_run_of_this_job(session.get("job"))
+
+
+def requeued_folder(run_dir: Path) -> Path | None:
+    """The folder this requeued job trained in: ``run_dir`` itself, or a sibling (the same name but for its date);
+    None outside a job that started again, or when its earlier start made no folder."""
+    job = jobs.current_job()
+    if job is None or job.restarts == 0:
+        return None
+    if trained_by_this_job_before(run_dir):
+        return run_dir
+    parent = run_dir.parent
+    if not parent.is_dir():
+        return None
+    mine = [sibling for sibling in sorted(parent.iterdir()) if sibling.is_dir() and trained_by_this_job_before(sibling)]
+    return mine[-1] if mine else None
+
+
+def checkpoint_step(folder: Path | None) -> int | None:
+    """The step of the checkpoint in ``folder`` (a ``checkpoints/last`` found by :func:`find_checkpoint`)."""
+    if folder is None:
+        return None
+    try:
+        return int(json.loads((folder / META_FILE).read_text())["num_timesteps"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+def refuse_existing_run(run_dir: Path) -> None:
+    """A :class:`ConfigError` when ``run_dir`` already holds a run's records: a new run never reuses a folder."""
+    if not run_dir.is_dir():
+        return
+    checkpoints = run_dir / "checkpoints"
+    held = [name for name in (CONFIG_FILE, EVALUATIONS_CSV, SUMMARY_FILE) if (run_dir / name).exists()]
+    if checkpoints.is_dir() and any(checkpoints.iterdir()):
+        step = checkpoint_step(find_checkpoint(checkpoint_dir(run_dir, LAST)))
+        held.append(f"a checkpoint at step {step}" if step is not None else "checkpoints/")
+    if held:
+        raise ConfigError(
+            f"run_dir={run_dir} already holds a run ({', '.join(held)}). Continue that run with: python run.py "
+            f"resume={run_dir}, or start this one in a new folder (a new run_dir, or none: the default names a new "
+            "folder for each launch)."
+        )
+
+
+# Checks before anything is written (run.py's command line) ------------------------------------------------------------
+def check_new(run_dir: Path) -> None:
+    """``run_dir=`` of a new run: a folder (or nothing yet), not in use, holding no run unless this requeued job's."""
+    if run_dir.exists() and not run_dir.is_dir():
+        raise ConfigError(f"run_dir={run_dir} is a file, not a folder. Pass a folder for the run's records.")
+    RunFolderLock.check_free(run_dir)
+    if not trained_by_this_job_before(run_dir):
+        refuse_existing_run(run_dir)
+
+
+def check_resumable(run_dir: Path) -> Path:
+    """``resume=``: a run folder not in use, with a checkpoint; returns the checkpoint."""
+    if run_dir.exists() and not run_dir.is_dir():
+        raise ConfigError(f"resume={run_dir} is a file. Pass the folder of an earlier run (it holds checkpoints/).")
+    RunFolderLock.check_free(run_dir)
+    if run_dir.is_dir() and not (run_dir / CONFIG_FILE).is_file() and not (run_dir / "checkpoints").is_dir():
+        raise ConfigError(
+            f"resume={run_dir}: {run_dir / CONFIG_FILE} does not exist. Pass the folder of an earlier run "
+            "(runs/<env>/<algo>/seed<N>/<date>), which holds config.yaml and checkpoints/."
+        )
+    return resume_checkpoint(run_dir)
+
+
+def config_for_resume(cfg: DictConfig, overrides: list[str]) -> DictConfig:
+    """The config the run ``cfg.resume`` trained with (kept in its checkpoint), with the command line's overrides.
+
+    ``python run.py resume=DIR total_timesteps=2000000`` continues DIR to 2M steps with everything else as saved.
+    Every change is checked against the checkpoint (:func:`~sb3_td3x.experiment.resume.check_resume`): a resume may
+    change the length, the evaluation and checkpoint frequencies, logging and the device, nothing that enters the
+    computation. A config group may change where it is one of those (``logger=wandb``, ``video=final``).
+    """
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    from sb3_td3x.experiment.resume import check_resume, saved_config
+    from sb3_td3x.experiment.schemas import CONFIG_GROUPS, ExperimentConfig, compose_config, public_config
+
+    run_dir = Path(cfg.resume)
+    checkpoint = check_resumable(run_dir)
+    saved = saved_config(run_dir, checkpoint, CONFIG_FILE)
+    resumed = OmegaConf.merge(OmegaConf.structured(ExperimentConfig), OmegaConf.create(saved))
+    for override in OverridesParser.create().parse_overrides(overrides):
+        key = override.key_or_group
+        if key == "resume" or key.startswith("hydra"):
+            continue
+        if key in CONFIG_GROUPS:
+            if key not in ("logger", "video"):
+                raise ConfigError(
+                    f"resume={run_dir} continues the run with its saved config, so '{override.input_line}' cannot change "
+                    f"the config group '{key}'. Drop it, or start a new run without resume=."
+                )
+            resumed[key] = compose_config([override.input_line])[key]
+            continue
+        OmegaConf.update(resumed, key, override.value(), merge=False)
+    resumed.resume = str(run_dir)
+    resumed.run_dir = str(run_dir)
+    check_resume(saved, public_config(resumed), run_dir)
+    return resumed
+
+
+# The owner ------------------------------------------------------------------------------------------------------------
+@dataclass
+class Start:
+    """Where and how a run starts: in ``run_dir``, resuming ``resume`` (or not), and why (:data:`NEW`, ...)."""
+
+    run_dir: Path
+    resume: Path | None
+    how: str
+
+
+def where_to_start(cfg: DictConfig) -> Start:
+    """Rules 1 to 3 for a composed config (``cfg.resume``, ``cfg.run_dir``), whoever calls: ``run.py``, the API, a
+    sweep trial, a requeued job."""
+    if cfg.resume is not None:
+        return Start(Path(cfg.resume), Path(cfg.resume), RESUMED)
+    run_dir = Path(cfg.run_dir)
+    found = requeued_folder(run_dir)
+    if found is None:
+        return Start(run_dir, None, NEW)
+    if cfg.seeds is not None:  # a batch: its folders are the seeds' (seed_run_dirs); any checkpoint resumes the batch
+        from sb3_td3x.experiment.runner import seed_run_dirs
+
+        dirs = seed_run_dirs(OmegaConf.merge(cfg, {"run_dir": str(found)}))
+        has_checkpoint = any(find_checkpoint(checkpoint_dir(d, LAST)) is not None for d in dirs)
+    else:
+        has_checkpoint = find_checkpoint(checkpoint_dir(found, LAST)) is not None
+    return Start(found, found if has_checkpoint else None, REQUEUED if has_checkpoint else RESTARTED)
+
+
+class RunFolder:
+    """One run folder, owned by this process from :meth:`claim` to :meth:`release` (or the end of the process)."""
+
+    def __init__(self, path: Path, lock: RunFolderLock, how: str) -> None:
+        self.path = path
+        self.how = how
+        self._lock: RunFolderLock | None = lock
+
+    @classmethod
+    def claim(cls, run_dir: Path | str, how: str) -> RunFolder:
+        """Take the folder's lock; a new run (:data:`NEW`) also refuses a folder that holds a run."""
+        path = Path(run_dir)
+        lock = RunFolderLock.acquire(path)
+        try:
+            if how == NEW:
+                refuse_existing_run(path)
+        except BaseException:
+            lock.release()
+            raise
+        return cls(path, lock, how)
+
+    def start_session(self, config: dict[str, Any], at_step: int, session: dict[str, Any], provenance: dict[str, Any]) -> None:
+        """``config.yaml`` as this session trains, and its line in ``provenance.jsonl`` (with the scheduler job)."""
+        write_atomically(self.path / CONFIG_FILE, OmegaConf.to_yaml(OmegaConf.create(config)))
+        job = jobs.current_job()
+        record: dict[str, Any] = {"started": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "at_step": int(at_step), "start": self.how}
+        if job is not None:
+            record["job"] = job.record()
+        with open(self.path / PROVENANCE_FILE, "a") as file:  # one line per session: a run may span several
+            file.write(json.dumps(redact({**record, **session, **provenance})) + "\n")
+
+    def write_summary(self, summary: dict[str, Any]) -> None:
+        (self.path / SUMMARY_FILE).write_text(json.dumps(redact(summary), indent=2))
+
+    def release(self) -> None:
+        if self._lock is not None:
+            self._lock.release()
+            self._lock = None
+
