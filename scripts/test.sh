@@ -15,6 +15,12 @@ if [ -z "${SB3_TD3X_TEST_PG_URL:-}" ] && { [ "${CI:-}" = "true" ] || [ "${SB3_TD
   . .ci/postgres.sh
 fi
 
+# A one-node SLURM for the cluster tests (tests/cluster): started from Debian's packages in CI (or when asked for).
+if [ -z "${SLURM_CONF:-}" ] && { [ "${CI:-}" = "true" ] || [ "${SB3_TD3X_START_SLURM:-}" = "1" ]; } && [ -f .ci/slurm.sh ]; then
+  # shellcheck disable=SC1091
+  . .ci/slurm.sh
+fi
+
 # The documentation must build with warnings as errors.
 if [ -f mkdocs.yml ]; then
   mkdocs build --strict --quiet --site-dir site

@@ -124,7 +124,10 @@ def job_end(job: Any, settle_s: float = 120.0) -> dict[str, Any]:
     end: dict[str, Any] = {"job": str(job.job_id), "state": "UNKNOWN", "requeued": 0}
     deadline = time.monotonic() + settle_s
     while True:
-        info = job.watcher.get_info(job.job_id, mode="force") if hasattr(job.watcher, "get_info") else {}
+        try:
+            info = job.watcher.get_info(job.job_id, mode="force")
+        except NotImplementedError:  # submitit's local jobs: their state is the process's
+            info = {}
         end["state"] = (info.get("State") or job.state or "UNKNOWN").split()[0]
         if end["state"].upper() not in _NOT_ENDED or not info or time.monotonic() > deadline:
             break

@@ -89,7 +89,7 @@ def test_a_requeued_run_ends_in_its_folder_bit_identical_to_an_uninterrupted_run
     try:
         run_dir = sweep_dir / "0_pendulum_td3_seed0"
         wait_for(lambda: (run_dir / "checkpoints" / "last" / "meta.json").is_file(), "the first checkpoint", 300, launcher)
-        job_id = _sessions(run_dir)[0]["job"]["job_id"]
+        (job_id,) = [p.name for p in (sweep_dir / ".submitit").iterdir() if p.name.isdigit()]  # submitit's folder: the id
         requeue_now(job_id, how)
         out, err = launcher.communicate(timeout=600)
         assert launcher.returncode == 0, err[-4000:]
@@ -97,6 +97,7 @@ def test_a_requeued_run_ends_in_its_folder_bit_identical_to_an_uninterrupted_run
     finally:
         launcher.kill()
         reference.kill()
+        subprocess.run(["scancel", "--name", "run"], capture_output=True)  # whatever failed, no job is left behind
     assert job_fields(job_id).get("Restarts") == "1"
 
     first, second = _sessions(run_dir)
@@ -117,3 +118,33 @@ def test_a_requeued_run_ends_in_its_folder_bit_identical_to_an_uninterrupted_run
         assert torch.equal(mine[key], theirs[key]), key
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["final_mean_return"] == json.loads((tmp_path / "reference" / "summary.json").read_text())["final_mean_return"]
+
+
+def test_a_requeued_batch_job_finds_its_dated_folder_by_its_job_id(slurm, tmp_path):
+    """``sbatch`` of a plain ``run.py`` whose run_dir names a new dated folder at each launch: started again after a
+    requeue, the job finds the folder its first start trained in (a sibling of the one the clock names now)."""
+    seed_dir = tmp_path / "runs" / "seed0"
+    script = tmp_path / "job.sh"
+    script.write_text(
+        "#!/bin/bash\n"
+        f"#SBATCH --cpus-per-task=1 --output={tmp_path}/job_%j.out --open-mode=append --job-name=run\n"
+        f"cd {REPO}\n"
+        f"exec {python()} run.py {' '.join(SMOKE)} total_timesteps=4000 checkpoint.freq=1000 "
+        f"'run_dir={seed_dir}/${{now:%H-%M-%S}}'\n"
+    )
+    done = subprocess.run(["sbatch", "--parsable", str(script)], env=slurm, capture_output=True, text=True, check=True)
+    job_id = done.stdout.strip().split(";")[0]
+    try:
+        first = wait_for(lambda: [p for p in seed_dir.glob("*") if (p / "checkpoints" / "last" / "meta.json").is_file()],
+                         "the first checkpoint", 300)  # fmt: skip
+        requeue_now(job_id)
+        wait_for(lambda: job_fields(job_id).get("JobState") in ("COMPLETED", "FAILED", "CANCELLED"), "the job's end", 300)
+    finally:
+        subprocess.run(["scancel", job_id], capture_output=True)
+    log = (tmp_path / f"job_{job_id}.out").read_text()
+    assert job_fields(job_id)["JobState"] == "COMPLETED", log[-3000:]
+    assert [p.name for p in seed_dir.iterdir()] == [first[0].name], "one folder, continued"
+    sessions = _sessions(first[0])
+    assert [s["start"] for s in sessions] == ["new", "requeue"] and sessions[1]["job"]["restarts"] == 1
+    assert json.loads((first[0] / "summary.json").read_text())["total_timesteps"] == 4000
+    assert (first[0] / ".hydra" / "requeued_1").is_dir()

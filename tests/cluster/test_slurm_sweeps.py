@@ -30,7 +30,11 @@ def _sweep(slurm, pg_url, tmp_path, sweep_file, study, *extra, workers=2):
 def test_sweep_workers_as_slurm_jobs_complete_the_study(slurm, pg_url, tmp_path):
     study = f"slurm-{uuid.uuid4().hex[:8]}"
     proc = _sweep(slurm, pg_url, tmp_path, SMOKE, study, "--n-trials", "4")
-    out, err = proc.communicate(timeout=600)
+    try:
+        out, err = proc.communicate(timeout=600)
+    finally:
+        proc.kill()
+        subprocess.run(["scancel", "--name", f"sweep-{study}"], capture_output=True)
     assert proc.returncode == 0, err[-4000:]
     assert "submitted 2 slurm worker job(s)" in out and "workers exited with [0, 0]" in out
     trials = optuna.load_study(study_name=study, storage=open_storage(pg_url, study).storage).get_trials()
@@ -61,6 +65,7 @@ def test_a_requeued_worker_resumes_its_trial_and_wait_reports_the_real_end(slurm
         out, err = proc.communicate(timeout=600)
     finally:
         proc.kill()
+        subprocess.run(["scancel", "--name", f"sweep-{study}"], capture_output=True)  # no job is left behind
     assert proc.returncode == 0, err[-4000:]
     assert job_fields(job_id).get("Restarts") == "1"
     # --wait followed the job through its requeue to its real end

@@ -1,0 +1,167 @@
+"""The scheduler job a process runs in, and how a requeued job finds its run folder (by its id, not the clock).
+
+The cluster layer (tests/cluster) runs all of it on a real SLURM; these tests pin the rules without one, with the
+environment SLURM gives a job.
+"""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from sb3_td3x.experiment import jobs
+from sb3_td3x.experiment.cli import default_threads
+from sb3_td3x.experiment.job_watch import read_scontrol
+from sb3_td3x.experiment.lock import RunFolderBusy, RunFolderLock
+from sb3_td3x.experiment.run_folder import (
+    NEW,
+    REQUEUED,
+    RESTARTED,
+    RunFolder,
+    check_new,
+    hydra_records_subdir,
+    hydra_run_dir,
+    requeued_folder,
+    where_to_start,
+)
+from sb3_td3x.experiment.schemas import compose_config
+
+SLURM_VARS = ("SLURM_JOB_ID", "SLURM_CLUSTER_NAME", "SLURM_RESTART_COUNT", "SLURM_ARRAY_JOB_ID", "SLURM_ARRAY_TASK_ID",
+              "SLURM_CPUS_PER_TASK", "SLURM_CPUS_ON_NODE", "SUBMITIT_FOLDER")  # fmt: skip
+
+
+@pytest.fixture
+def job(monkeypatch):
+    """Act as SLURM job 42 of cluster c1: ``job(restarts)`` sets its start."""
+    for name in SLURM_VARS:
+        monkeypatch.delenv(name, raising=False)
+
+    def start(restarts: int | None, job_id: str = "42") -> None:
+        if restarts is None:
+            monkeypatch.delenv("SLURM_JOB_ID", raising=False)
+            return
+        monkeypatch.setenv("SLURM_JOB_ID", job_id)
+        monkeypatch.setenv("SLURM_CLUSTER_NAME", "c1")
+        monkeypatch.setenv("SLURM_RESTART_COUNT", str(restarts))
+
+    return start
+
+
+def _session(folder, **job_record):
+    folder.mkdir(parents=True, exist_ok=True)
+    record = {"started": "2026-01-01T00:00:00", "at_step": 0, "start": NEW}
+    if job_record:
+        record["job"] = {"scheduler": "slurm", "cluster": "c1", "name": job_record["job_id"], **job_record}
+    with open(folder / "provenance.jsonl", "a") as file:
+        file.write(json.dumps(record) + "\n")
+    (folder / "config.yaml").write_text("seed: 0\n")
+
+
+def test_current_job_reads_slurms_environment(job, monkeypatch):
+    job(None)
+    assert jobs.current_job() is None and jobs.job_cores() is None
+    job(2)
+    monkeypatch.setenv("SLURM_ARRAY_JOB_ID", "41")
+    monkeypatch.setenv("SLURM_ARRAY_TASK_ID", "1")
+    monkeypatch.setenv("SLURM_CPUS_PER_TASK", "3")
+    current = jobs.current_job()
+    assert (current.job_id, current.name, current.cluster, current.restarts) == ("42", "41_1", "c1", 2)
+    assert jobs.job_cores() == 3
+    assert current.is_earlier_run_of_this_job({"scheduler": "slurm", "cluster": "c1", "job_id": "42", "restarts": 1})
+    assert not current.is_earlier_run_of_this_job({"scheduler": "slurm", "cluster": "c1", "job_id": "42", "restarts": 2})
+    assert not current.is_earlier_run_of_this_job({"scheduler": "slurm", "cluster": "c2", "job_id": "42", "restarts": 0})
+    assert not current.is_earlier_run_of_this_job({"scheduler": "slurm", "cluster": "c1", "job_id": "43", "restarts": 0})
+    assert not current.is_earlier_run_of_this_job(None)
+
+
+def test_a_requeued_job_finds_its_folder_by_its_id_not_by_the_clock(job, tmp_path):
+    seed_dir = tmp_path / "runs" / "pendulum" / "td3" / "seed0"
+    mine, other = seed_dir / "2026-01-01_10-00-00", seed_dir / "2026-01-01_10-00-05"
+    _session(mine, job_id="42", restarts=0)
+    _session(other, job_id="7", restarts=0)  # another job's run, started later
+    new_name = seed_dir / "2026-01-01_11-30-00"  # what ${now} names when the job starts again
+    job(0)
+    assert requeued_folder(new_name) is None and hydra_run_dir(None, str(new_name)) == str(new_name)
+    job(1)
+    assert requeued_folder(new_name) == mine and hydra_run_dir(None, str(new_name)) == str(mine)
+    assert requeued_folder(mine) == mine  # a fixed run_dir, or a multirun job's folder
+    assert hydra_run_dir(str(other), str(new_name)) == str(other)  # resume= decides
+    assert hydra_records_subdir(None) == ".hydra/requeued_1"
+    job(None)
+    assert requeued_folder(new_name) is None and hydra_records_subdir(None) == ".hydra"
+
+
+def test_a_job_continues_only_its_own_earlier_start(job, tmp_path):
+    folder = tmp_path / "run"
+    _session(folder, job_id="42", restarts=1)
+    job(1)  # the same start again (a second run.py in one job script): a new run, refused as usual
+    with pytest.raises(Exception, match="already holds a run"):
+        check_new(folder)
+    job(2)
+    check_new(folder)  # its own earlier start: continued
+    job(2, job_id="43")
+    with pytest.raises(Exception, match="already holds a run"):
+        check_new(folder)
+
+
+def test_where_to_start_resumes_with_a_checkpoint_and_restarts_without(job, tmp_path):
+    folder = tmp_path / "run"
+    _session(folder, job_id="42", restarts=0)
+    cfg = compose_config([f"run_dir={folder}", "debug=smoke"])
+    job(1)
+    start = where_to_start(cfg)
+    assert (start.run_dir, start.resume, start.how) == (folder, None, RESTARTED)
+    meta = folder / "checkpoints" / "last" / "meta.json"
+    meta.parent.mkdir(parents=True)
+    meta.write_text(json.dumps({"num_timesteps": 1000}))
+    start = where_to_start(cfg)
+    assert (start.run_dir, start.resume, start.how) == (folder, folder, REQUEUED)
+
+
+def test_a_second_live_owner_is_refused_even_for_the_requeued_job(job, tmp_path):
+    folder = tmp_path / "run"
+    _session(folder, job_id="42", restarts=0)
+    held = RunFolderLock.acquire(folder)  # still owned (say, by a start that has not ended)
+    try:
+        job(1)
+        with pytest.raises(RunFolderBusy):
+            check_new(folder)
+        with pytest.raises(RunFolderBusy):
+            RunFolder.claim(folder, REQUEUED)
+    finally:
+        held.release()
+    RunFolder.claim(folder, REQUEUED).release()
+
+
+def test_torch_threads_follow_the_jobs_cores(job, monkeypatch):
+    job(None)
+    assert default_threads(False, {}) is None
+    assert default_threads(True, {"n_jobs": 1}) is not None
+    assert default_threads(True, {"cpus_per_task": 3, "timeout_min": 60}) == 3
+    assert default_threads(True, {"timeout_min": 60}) is None  # no say of the launcher: torch's default
+    job(0)
+    monkeypatch.setenv("SLURM_CPUS_PER_TASK", "2")
+    assert default_threads(False, {}) == 2 and default_threads(True, {"n_jobs": -1}) == 2
+
+
+def test_scontrol_lines_become_submitits_job_infos():
+    text = (
+        "JobId=12 ArrayJobId=11 ArrayTaskId=1 JobName=run UserId=root(0) JobState=PENDING Reason=BeginTime "
+        "Requeue=1 Restarts=1 BatchFlag=1 ExitCode=0:0 NodeList=(null)\n"
+        "JobId=13 JobName=x JobState=COMPLETED Reason=None Restarts=0 ExitCode=0:0 NodeList=vm\n"
+    )
+    infos = read_scontrol(text)
+    assert infos["11_1"]["State"] == "PENDING" and infos["11_1"]["Restarts"] == "1"
+    assert infos["13"]["State"] == "COMPLETED" and infos["13"]["NodeList"] == "vm"
+
+
+def test_outside_a_submitit_job_the_stop_signals_are_sigint_and_sigterm(job, monkeypatch):
+    import signal
+
+    job(0)
+    assert jobs.stop_signals() == (signal.SIGINT, signal.SIGTERM)
+    monkeypatch.setenv("SUBMITIT_FOLDER", "/tmp/x")
+    assert jobs.stop_signals() == (signal.SIGINT, signal.SIGTERM, signal.SIGUSR2)
+    monkeypatch.setenv("SUBMITIT_PREEMPT_SIGNAL", "USR1")
+    assert jobs.requeue_signal() == signal.SIGUSR1
