@@ -4,6 +4,9 @@ Helpers are plain functions here, imported as ``from conftest import random_batc
 """
 
 import os
+import shutil
+import subprocess
+from pathlib import Path
 
 import pytest
 import torch as th
@@ -57,6 +60,30 @@ def pg_url() -> str:
     if os.environ.get("CI", "").lower() == "true":
         pytest.fail(f"SB3_TD3X_TEST_PG_URL is not set in CI; .ci/run must start PostgreSQL first: {how}")
     pytest.skip(f"no PostgreSQL server: SB3_TD3X_TEST_PG_URL is not set (start one with {how})")
+
+
+SLURM_HOW = 'export SLURM_CONF="$(bash .ci/slurm.sh)" (as root; it installs slurm-wlm and munge when missing)'
+
+
+@pytest.fixture(scope="session")
+def slurm() -> dict[str, str]:
+    """The environment for commands that use the cluster (``SLURM_CONF``), once a node answers idle or busy."""
+    problem = None
+    if shutil.which("sinfo") is None:
+        problem = "SLURM's commands are not installed"
+    else:
+        done = subprocess.run(["sinfo", "-h", "-N", "-o", "%T"], capture_output=True, text=True, timeout=30)
+        states = done.stdout.split()
+        if done.returncode != 0:
+            problem = f"sinfo fails: {' '.join(done.stderr.split())}"
+        elif not any(state.rstrip("*") in ("idle", "mixed", "allocated") for state in states):
+            problem = f"no SLURM node is up (states: {states or 'none'})"
+    if problem is not None:
+        if os.environ.get("CI", "").lower() == "true":
+            pytest.fail(f"{problem}; CI must start SLURM first: {SLURM_HOW}")
+        pytest.skip(f"{problem}: start a one-node SLURM with {SLURM_HOW}")
+    repo = str(Path(__file__).resolve().parents[1])
+    return {**os.environ, "PYTHONPATH": repo + os.pathsep + os.environ.get("PYTHONPATH", ""), "PYTHONUNBUFFERED": "1"}
 
 
 def random_batches(

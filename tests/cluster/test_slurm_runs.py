@@ -14,8 +14,7 @@ from pathlib import Path
 import pandas as pd
 import pytest
 import torch
-
-from conftest import REPO, job_fields, python, requeue_now, wait_for  # tests/cluster/conftest.py
+from slurm_helpers import REPO, job_fields, python, requeue_now, wait_for
 
 SMOKE = ["debug=smoke", "progress_bar=false", "logger=none"]
 SLURM_JOB = ["hydra/launcher=submitit_slurm", "hydra.launcher.cpus_per_task=1", "hydra.launcher.timeout_min=15"]

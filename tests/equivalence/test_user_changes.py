@@ -314,13 +314,20 @@ def assert_collection_is_sb3s(model: TD3X) -> None:
 
 
 # --- the tests ------------------------------------------------------------------------------------------------------------
+# Cases whose learn() turns the paths' float rounding into a visibly different trajectory. Critic targets that move
+# halfway to the critics at every step (tau 0.5) make the TD target follow the critics' own rounding: on a 2-core Intel
+# Xeon with AVX-512 (Sapphire Rapids class, 2026-11-26) the update alone agrees to 3.6e-7 after 400 steps
+# (train_updates), learn() to 1.2e-4 after 200, where the AMD EPYCs gave < 1e-5; a dropped override is 0.49 away.
+ROUNDING_AMPLIFIED = {"update_critic_target-overridden": {"rtol": 1e-3, "atol": 1e-3}}
+
+
 @pytest.mark.parametrize("name", list(CASES))
 def test_a_users_change_is_trained_as_written(name):
     case = CASES[name]
     fast = train(case)
     reference = train(case, mlp_update=False)
     assert reference.update_path == "autograd"
-    assert_same_weights(fast, reference)
+    assert_same_weights(fast, reference, **ROUNDING_AMPLIFIED.get(name, {}))
     # The change matters: a path that dropped it would end far from the reference.
     dropped = float((outputs(reference) - unchanged_outputs()).abs().max())
     assert dropped > 1e-3, f"the case {name} does not change training ({dropped:.2e}): it proves nothing"

@@ -1,40 +1,15 @@
-"""The cluster layer: ``run.py`` multiruns and sweep workers as jobs of a real SLURM (``.ci/slurm.sh``: Debian's
-``slurm-wlm`` and ``munge``, one node). Skipped where no SLURM answers; an error in CI, which starts one."""
+"""Helpers of the cluster layer (tests/cluster): a job's fields, waiting, requeueing. The ``slurm`` fixture is in
+tests/conftest.py."""
 
 from __future__ import annotations
 
-import os
 import re
-import shutil
 import subprocess
 import sys
 import time
 from pathlib import Path
 
-import pytest
-
 REPO = Path(__file__).resolve().parents[2]
-HOW = "export SLURM_CONF=\"$(bash .ci/slurm.sh)\" (as root; it installs slurm-wlm and munge when missing)"
-
-
-@pytest.fixture(scope="session")
-def slurm() -> dict[str, str]:
-    """The environment for commands that use the cluster (``SLURM_CONF``), once a node answers idle or busy."""
-    problem = None
-    if shutil.which("sinfo") is None:
-        problem = "SLURM's commands are not installed"
-    else:
-        done = subprocess.run(["sinfo", "-h", "-N", "-o", "%T"], capture_output=True, text=True, timeout=30)
-        states = done.stdout.split()
-        if done.returncode != 0:
-            problem = f"sinfo fails: {' '.join(done.stderr.split())}"
-        elif not any(state.rstrip("*") in ("idle", "mixed", "allocated") for state in states):
-            problem = f"no SLURM node is up (states: {states or 'none'})"
-    if problem is not None:
-        if os.environ.get("CI", "").lower() == "true":
-            pytest.fail(f"{problem}; CI must start SLURM first: {HOW}")
-        pytest.skip(f"{problem}: start a one-node SLURM with {HOW}")
-    return {**os.environ, "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""), "PYTHONUNBUFFERED": "1"}
 
 
 def job_fields(job_id: str) -> dict[str, str]:
