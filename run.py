@@ -14,7 +14,7 @@ from omegaconf import DictConfig
 
 from sb3_td3x.common.redaction import redact_log_records
 from sb3_td3x.experiment import job_watch
-from sb3_td3x.experiment.cli import check_command_line
+from sb3_td3x.experiment.cli import check_command_line, shared_gpu
 from sb3_td3x.experiment.cli import main as run_main
 
 CONF_DIR = Path(__file__).resolve().parent / "conf"
@@ -29,4 +29,5 @@ if __name__ == "__main__":
     redact_log_records()  # every log line of the run, Hydra's included, with its secrets masked
     check_command_line(sys.argv[1:], CONF_DIR)
     job_watch.install()  # hydra/launcher=submitit_slurm: follow the jobs with scontrol where sacct does not answer
-    main()
+    with shared_gpu(sys.argv[1:], CONF_DIR):  # a multirun's jobs side by side on one GPU: CUDA MPS (mps.py)
+        main()

@@ -5,11 +5,13 @@ run trains in, and what may continue it, is :mod:`sb3_td3x.experiment.run_folder
 
 from __future__ import annotations
 
+import contextlib
 import difflib
 import math
 import os
 import re
 import sys
+import tempfile
 from pathlib import Path
 
 from hydra.core.hydra_config import HydraConfig
@@ -98,6 +100,52 @@ def _check_group_choice(conf_dir: Path, group: str, choice: object) -> None:
     raise ConfigError(
         f"{group}={choice}: there is no config '{choice}' in {conf_dir / group}.{hint} The choices are: {', '.join(options)}."
     )
+
+
+def shared_gpu(args: list[str], conf_dir: Path) -> contextlib.AbstractContextManager:
+    """CUDA MPS around a multirun whose jobs run side by side on this machine's GPU (the joblib and submitit_local
+    launchers; on SLURM the cluster decides: docs/cluster.md), as :mod:`sb3_td3x.experiment.mps` decides. One line
+    says what it did where the jobs use a GPU; nothing happens elsewhere."""
+    from sb3_td3x.experiment import mps
+    from sb3_td3x.experiment.schemas import compose_config
+
+    if not {"-m", "--multirun"} & set(args):
+        return contextlib.nullcontext()
+    launcher, n_jobs, combinations, plain = "joblib_cores", None, 1, []
+    for arg in args:
+        if re.match(r"^[+~]?[A-Za-z_][\w./]*=", arg) is None:
+            continue
+        try:
+            override = OverridesParser.create().parse_override(arg)
+        except Exception:  # check_command_line has let Hydra explain it
+            return contextlib.nullcontext()
+        values = list(override.sweep_string_iterator()) if override.is_sweep_override() else [override.value()]
+        combinations *= max(1, len(values))
+        key = override.key_or_group
+        if key == "hydra/launcher":
+            launcher = str(values[0])
+        elif key == "hydra.launcher.n_jobs":
+            n_jobs = int(values[0])
+        elif not key.startswith("hydra"):
+            plain.append(f"{arg.split('=', 1)[0]}={values[0]}")
+    if launcher not in ("joblib_cores", "joblib", "submitit_local"):
+        return contextlib.nullcontext()
+    parallel = combinations
+    if launcher != "submitit_local":
+        n_jobs = n_jobs if n_jobs is not None else (-1 if launcher == "joblib_cores" else 10)  # the plugin's default: 10
+        parallel = min(combinations, n_jobs if n_jobs > 0 else max(1, available_cores() + 1 + n_jobs))
+    try:
+        cfg = compose_config(plain, conf_dir)
+    except Exception:  # noqa: BLE001  (a composition error is reported by Hydra itself)
+        return contextlib.nullcontext()
+    device = str(cfg.device)
+    wants_gpu = device.startswith("cuda") or (device == "auto" and mps._has_cuda())
+    folder = Path(tempfile.gettempdir()) / f"td3x-mps-{os.getpid()}"  # short: the pipe is a Unix socket path
+    decision = mps.decide(parallel, wants_gpu, bool(cfg.mps), folder)
+    say = (lambda line: print(line, file=sys.stderr)) if wants_gpu and parallel > 1 else (lambda line: None)
+    if wants_gpu and parallel > 1 and decision.pipe is None:
+        say(f"CUDA MPS: not used: {decision.reason}")
+    return mps.SharedGpu(decision, folder, say=say)
 
 
 def available_cores() -> int:

@@ -183,6 +183,9 @@ class ExperimentConfig:
     # with the default launcher settings); in a sweep trial, 1. A number: exactly that.
     torch_threads: int | None = None
     progress_bar: bool = True
+    # Several processes of a launch on one GPU (a joblib or submitit_local multirun, local sweep workers) share it
+    # through CUDA MPS where the machine has it (sb3_td3x/experiment/mps.py); false: time slices of the driver
+    mps: bool = True
 
 
 def register_configs() -> None:

@@ -146,7 +146,7 @@ def _run(args: argparse.Namespace) -> int:
 
     check_composes(spec, config_dir, args.overrides)
     if args.launcher is not None:
-        return _launch(args, storage_url, study_dir, study_name, config_dir)
+        return _launch(args, storage_url, study_dir, study_name, config_dir, spec.overrides)
 
     study_storage = open_storage(storage_url, study_name, args.heartbeat_interval, args.grace_period, args.retry_stale)
     optuna.logging.set_verbosity(optuna.logging.WARNING)  # our own log lines say what happens to each trial
@@ -200,7 +200,9 @@ def _run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _launch(args: argparse.Namespace, storage_url: str, study_dir: Path, study_name: str, config_dir: Path) -> int:
+def _launch(
+    args: argparse.Namespace, storage_url: str, study_dir: Path, study_name: str, config_dir: Path, fixed: list[str]
+) -> int:
     import optuna
 
     from sb3_td3x.sweeps.launch import load_launcher, submit_workers, wait_for_workers
@@ -218,12 +220,13 @@ def _launch(args: argparse.Namespace, storage_url: str, study_dir: Path, study_n
             "SQLite on a cluster's shared file system is fragile with many workers; prefer --storage postgresql://..."
         )
     worker_argv = _worker_argv(args, _password_to_environment(storage_url), study_dir, config_dir)
-    jobs = submit_workers(cluster, executor_params, args.workers, worker_argv)
-    print(f"submitted {len(jobs)} {cluster} worker job(s): {', '.join(str(job.job_id) for job in jobs)}")
-    print(f"job logs: {study_dir / 'jobs'}; the last worker writes the results into {study_dir}")
-    if not args.wait:
-        return 0
-    ends = wait_for_workers(jobs)  # each job to its real end, through requeues
+    with _shared_gpu(args, cluster, config_dir, fixed + args.overrides):
+        jobs = submit_workers(cluster, executor_params, args.workers, worker_argv)
+        print(f"submitted {len(jobs)} {cluster} worker job(s): {', '.join(str(job.job_id) for job in jobs)}")
+        print(f"job logs: {study_dir / 'jobs'}; the last worker writes the results into {study_dir}")
+        if not args.wait:
+            return 0
+        ends = wait_for_workers(jobs)  # each job to its real end, through requeues
     failed = [end for end in ends if "error" in end]
     if failed:
         raise SweepError(
@@ -233,6 +236,32 @@ def _launch(args: argparse.Namespace, storage_url: str, study_dir: Path, study_n
     codes = [int(end["result"]) for end in ends]
     print(f"workers exited with {codes}")
     return max(codes)
+
+
+def _shared_gpu(args: argparse.Namespace, cluster: str, config_dir: Path, overrides: list[str]):
+    """CUDA MPS for local worker jobs on this machine's GPU (:mod:`sb3_td3x.experiment.mps`), for as long as
+    ``--wait`` waits for them; without ``--wait`` nobody would stop a daemon, so one line says how to start one."""
+    import contextlib
+    import tempfile
+
+    from sb3_td3x.experiment import mps
+    from sb3_td3x.experiment.schemas import compose_config
+
+    if cluster != "local" or args.workers < 2:
+        return contextlib.nullcontext()
+    cfg = compose_config(overrides, config_dir)  # a trial's config, less its searched values (check_composes ran)
+    device = str(cfg.device)
+    wants_gpu = device.startswith("cuda") or (device == "auto" and mps._has_cuda())
+    if not wants_gpu:
+        return contextlib.nullcontext()
+    folder = Path(tempfile.gettempdir()) / f"td3x-mps-{os.getpid()}"
+    decision = mps.decide(args.workers, wants_gpu, bool(cfg.mps), folder)
+    if decision.start and not args.wait:
+        print(f"CUDA MPS: not started: without --wait nothing would stop it; start one with {mps.CONTROL} -d, or pass --wait")
+        return contextlib.nullcontext()
+    if decision.pipe is None:
+        print(f"CUDA MPS: not used: {decision.reason}")
+    return mps.SharedGpu(decision, folder)
 
 
 def _password_to_environment(storage_url: str) -> str:
