@@ -64,7 +64,7 @@ def decide(
     wants_gpu: bool,
     enabled: bool,
     folder: Path,
-    has_cuda: Callable[[], bool] = _has_cuda,
+    has_cuda: Callable[[], bool] | None = None,
     control: str | None = None,
 ) -> MpsDecision:
     """What to do about MPS for ``processes`` processes that will use the GPU (``wants_gpu``: their device resolves to
@@ -75,7 +75,7 @@ def decide(
         return MpsDecision(False, None, "the processes run on the CPU")
     if processes < 2:
         return MpsDecision(False, None, "one process at a time: nothing to share")
-    if not has_cuda():
+    if not (has_cuda or _has_cuda)():
         return MpsDecision(False, None, "no CUDA GPU on this machine")
     control = control if control is not None else shutil.which(CONTROL)
     if control is None:
