@@ -106,3 +106,25 @@ def test_a_multirun_on_this_machine_decides_from_its_command_line(fake_control, 
     err = capsys.readouterr().err
     assert "2 processes share the GPU: started an MPS control daemon" in err, err
     assert [line.split()[0] for line in log.read_text().splitlines()] == ["args=-d", "args="]
+
+
+def test_local_sweep_workers_share_the_gpu_only_while_wait_waits(fake_control, monkeypatch, capsys):
+    import argparse
+
+    from sb3_td3x.sweeps.cli import _shared_gpu
+
+    script, log = fake_control
+    monkeypatch.setattr(mps, "_has_cuda", lambda: True)
+    args = argparse.Namespace(workers=2, wait=False)
+    with _shared_gpu(args, "local", CONF, ["env=pendulum"]):  # without --wait nothing would stop a daemon
+        pass
+    assert not log.exists() and "without --wait nothing would stop it" in capsys.readouterr().out
+    with _shared_gpu(args, "slurm", CONF, ["env=pendulum"]):  # the cluster decides
+        pass
+    args.wait = True
+    with _shared_gpu(args, "local", CONF, ["env=pendulum", "device=cpu"]):
+        pass
+    assert not log.exists()
+    with _shared_gpu(args, "local", CONF, ["env=pendulum"]):
+        assert mps.running_daemon() is not None
+    assert [line.split()[0] for line in log.read_text().splitlines()] == ["args=-d", "args="]
