@@ -10,6 +10,10 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(REPO / "scripts"))
+from kill_loop import evaluations, tensors  # noqa: E402  (a final checkpoint's tensors; evaluations but the wall time)
+
+__all__ = ["REPO", "evaluations", "job_fields", "python", "requeue_now", "tensors", "wait_for"]
 
 
 def job_fields(job_id: str) -> dict[str, str]:

@@ -58,10 +58,8 @@ def test_a_requeued_worker_resumes_its_trial_and_wait_reports_the_real_end(slurm
     try:
         first_trial = (tmp_path / "runs" / study / "trial_0000").resolve()
         wait_for(lambda: (first_trial / "checkpoints" / "last" / "meta.json").is_file(), "trial 0's checkpoint", 300, proc)
-        job_id = wait_for(
-            lambda: subprocess.run(["squeue", "-h", "-n", f"sweep-{study}", "-o", "%i"], capture_output=True, text=True).stdout.strip(),
-            "the worker job in the queue", 30,
-        )  # fmt: skip
+        queue = ["squeue", "-h", "-n", f"sweep-{study}", "-o", "%i"]
+        job_id = wait_for(lambda: subprocess.run(queue, capture_output=True, text=True).stdout.strip(), "the worker job", 30)
         requeue_now(job_id)
         out, err = proc.communicate(timeout=600)
     finally:
