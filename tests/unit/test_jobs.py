@@ -165,3 +165,31 @@ def test_outside_a_submitit_job_the_stop_signals_are_sigint_and_sigterm(job, mon
     assert jobs.stop_signals() == (signal.SIGINT, signal.SIGTERM, signal.SIGUSR2)
     monkeypatch.setenv("SUBMITIT_PREEMPT_SIGNAL", "USR1")
     assert jobs.requeue_signal() == signal.SIGUSR1
+
+
+def test_a_requeued_worker_fails_and_queues_again_the_trial_its_earlier_start_left_running(job, tmp_path):
+    """A worker job killed before it could record its trial (SIGKILL past KillWait) finds that trial when SLURM starts
+    it again: its earlier start has ended, so the trial is failed and queued to resume at once, not after the
+    heartbeat's grace period. Trials of other jobs, and of this start, are left alone."""
+    import optuna
+    from optuna.trial import TrialState
+
+    from sb3_td3x.sweeps.objective import RESUMABLE
+    from sb3_td3x.sweeps.worker import fail_trials_of_earlier_start
+
+    study = optuna.create_study(storage=f"sqlite:///{tmp_path / 'study.db'}", study_name="s")
+    record = {"scheduler": "slurm", "cluster": "c1", "name": "42"}
+    for job_record in ({**record, "job_id": "42", "restarts": 0}, {**record, "job_id": "7", "restarts": 0}, None):
+        trial = study.ask({"x": optuna.distributions.FloatDistribution(0, 1)})
+        trial.set_user_attr("job", job_record)
+        trial.set_user_attr("run_dir", str(tmp_path / f"trial_{trial.number:04d}"))
+    job(0)
+    assert fail_trials_of_earlier_start(study) == []  # the first start: nothing of an earlier one
+    job(1)
+    assert fail_trials_of_earlier_start(study) == [0]
+    trials = study.get_trials()
+    assert [t.state for t in trials] == [TrialState.FAIL, TrialState.RUNNING, TrialState.RUNNING, TrialState.WAITING]
+    assert "was stopped (requeued) before it recorded the trial" in trials[0].user_attrs["fail_reason"]
+    assert trials[3].user_attrs[RESUMABLE] and trials[3].user_attrs["run_dir"] == trials[0].user_attrs["run_dir"]
+    assert trials[3].params == trials[0].params
+    assert fail_trials_of_earlier_start(study) == []  # once
