@@ -318,7 +318,10 @@ def _raise_keyboard_interrupt(signum: int, frame: object) -> None:
 def _setup_logging(quiet: bool) -> None:
     handler = logging.StreamHandler(sys.stderr)
     handler.setFormatter(logging.Formatter("[%(asctime)s sweep] %(message)s", datefmt="%H:%M:%S"))
-    logger.handlers[:] = [handler]
-    logger.setLevel(logging.WARNING if quiet else logging.INFO)
-    logger.propagate = False
+    # the sweep's own lines, and how the worker jobs are followed (sb3_td3x.experiment.job_watch: one line where
+    # sacct does not answer)
+    for name in (logger.name, "sb3_td3x.experiment.job_watch"):
+        logging.getLogger(name).handlers[:] = [handler]
+        logging.getLogger(name).setLevel(logging.WARNING if quiet else logging.INFO)
+        logging.getLogger(name).propagate = False
     redact_log_records()  # no password or key in any log line

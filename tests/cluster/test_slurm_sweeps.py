@@ -44,6 +44,7 @@ def test_sweep_workers_as_slurm_jobs_complete_the_study(slurm, pg_url, tmp_path)
     assert out.count(": COMPLETED, exit 0") == 2, out
     assert (tmp_path / "runs" / study / "summary.txt").is_file()
     assert "Bypassing sacct error" not in out + err
+    assert err.count("following the jobs with scontrol") == 1, err  # this cluster has no accounting: said once
 
 
 def test_a_requeued_worker_resumes_its_trial_and_wait_reports_the_real_end(slurm, pg_url, tmp_path):
