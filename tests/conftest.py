@@ -111,3 +111,17 @@ def feed(model, batches: list[ReplayBufferSamples], seed: int | None = None) -> 
     model.sample_batch = lambda batch_size: next(it)
     if seed is not None:
         th.manual_seed(seed)
+
+
+def eager_capture(fn, pool):
+    """A CPU stand-in for CUDA graph capture (``GraphedGradientStep(model, capture=eager_capture)``): "replay" reruns
+    the step and writes into the static outputs, so everything but the capture itself runs as on a GPU."""
+    outputs = fn()
+
+    def replay():
+        new = fn()
+        for static, fresh in zip(outputs, new):
+            for key in static:
+                static[key].copy_(fresh[key])
+
+    return replay, outputs, pool

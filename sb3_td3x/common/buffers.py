@@ -167,6 +167,12 @@ class TensorReplayBuffer(ReplayBuffer):
         self._static_span = th.ones((), dtype=th.float32, device=self._device)
         self.refresh_static_bounds()
 
+    def disable_static_sampling(self) -> None:
+        """Sample as SB3 does again (indices from numpy's generator, bounds read at each call): for a model whose
+        update no longer runs in CUDA graphs, where nothing would refresh the static bounds."""
+        for name in ("_static_offset", "_static_span"):
+            self.__dict__.pop(name, None)
+
     def refresh_static_bounds(self) -> None:
         """Write the current valid index range into the static bound tensors (asynchronous fills, no sync)."""
         offset, span = self._valid_range()

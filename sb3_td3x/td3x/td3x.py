@@ -25,7 +25,7 @@ from sb3_td3x.common.buffers import TensorReplayBuffer
 from sb3_td3x.common.random_streams import RandomStreams
 from sb3_td3x.td3x.hooks import HOOK_NAMES
 from sb3_td3x.td3x.policies import CnnPolicy, MlpPolicy, MultiInputPolicy, TD3XPolicy
-from sb3_td3x.td3x.update_paths.choose import choose_update
+from sb3_td3x.td3x.update_paths.choose import AUTO_GRAPHS, choose_update, why_not_cuda_graph
 from sb3_td3x.td3x.update_paths.exploration import choose_exploration_actor
 from sb3_td3x.td3x.update_paths.precision import autocast_context, bf16_on_cpu_warning
 
@@ -137,8 +137,16 @@ class TD3X(OffPolicyAlgorithm):
         critics', one for the actor's); otherwise steps 5 to 15 are, with the gradients from ``torch.func`` and
         Adam's update rule on the optimizers' own states
         (:class:`~sb3_td3x.td3x.update_paths.compiled.FunctionalCompiledUpdate`). The first steps pay the compilation
-    :param cuda_graph: opt-in, CUDA only: capture the whole gradient step, sampling included, in CUDA graphs and
-        replay them (no kernel-launch or Python overhead per step)
+    :param cuda_graph: capture the whole gradient step, sampling included, in CUDA graphs and replay them (no
+        kernel-launch or Python overhead per step). ``None`` (auto, the default) does where the update is provably
+        stock and capturable (:func:`~sb3_td3x.td3x.update_paths.cuda_graph.why_not_cuda_graph`: a CUDA device, the
+        tensor replay buffer, no ``VecNormalize``, Adam, SB3's ReLU MLP actor and critics with the hooks as written,
+        no ``compile_update`` or ``bf16``...), decided when the model is built and checked again at the first
+        ``train()``, which steps aside to the eager update if a hook or network was changed since: a user's change
+        is never frozen into a graph. So on a CPU, or with any change, the update is what it is with ``False``.
+        ``True`` captures the hooks as they are, changed or not (CUDA only: an error on a CPU); ``False`` never
+        captures. ``cuda_graph`` then says whether graphs are used, ``cuda_graph_request`` what was asked and
+        ``cuda_graph_reason`` why
     :param mlp_update: for SB3's ReLU MLP actor and critics with the hooks of steps 5 to 13 as written, compute the
         gradients by hand instead of with autograd (:class:`~sb3_td3x.td3x.update_paths.mlp.MlpUpdate`: the same
         update, faster). Anything it cannot prove unchanged (an overridden hook, a network's ``forward``, an
@@ -191,7 +199,7 @@ class TD3X(OffPolicyAlgorithm):
         clipped_double_q: bool = True,
         bf16: bool = False,
         compile_update: bool = False,
-        cuda_graph: bool = False,
+        cuda_graph: bool | None = None,
         mlp_update: bool = True,
         flush_denormals: bool = True,
         _init_setup_model: bool = True,
@@ -212,7 +220,8 @@ class TD3X(OffPolicyAlgorithm):
         self.clipped_double_q = clipped_double_q
         self.bf16 = bf16
         self.compile_update = compile_update
-        self.cuda_graph = cuda_graph
+        self.cuda_graph_request = cuda_graph  # what was asked: None (auto), True or False; saved with the model
+        self.cuda_graph = False  # whether the update runs in CUDA graphs: decided by _setup_model
         self.mlp_update = mlp_update
         self.flush_denormals = flush_denormals
         self._n_actor_updates = 0  # actor (delayed) updates done so far; saved with the model
@@ -234,7 +243,7 @@ class TD3X(OffPolicyAlgorithm):
             self.replay_buffer.random_streams = self.random_streams  # step 4's indices
 
     def _check_cuda_graph_setup(self) -> None:
-        if not self.cuda_graph:
+        if self.cuda_graph_request is not True:
             return
         if self.device.type != "cuda":
             raise ValueError(f"cuda_graph=True needs a CUDA device, got device={self.device}; use device='cuda'.")
@@ -312,21 +321,25 @@ class TD3X(OffPolicyAlgorithm):
         for name in ("target_policy_noise", "target_noise_clip"):
             if not is_number(values[name]) or not (math.isfinite(values[name]) and values[name] >= 0):
                 fail(name, "a finite float >= 0 (use target_policy_smoothing=False to switch smoothing off)")
+        if values["cuda_graph"] is not None and not isinstance(values["cuda_graph"], (bool, np.bool_)):
+            fail("cuda_graph", "None (auto: CUDA graphs where the update is provably stock), True or False")
         return problems
 
     def _setup_model(self) -> None:
         if self.replay_buffer_class is None and isinstance(self.observation_space, spaces.Box) and self.n_steps == 1:
             # Step 1: the replay buffer, kept as tensors on the training device (SB3's other buffers otherwise).
             self.replay_buffer_class = TensorReplayBuffer
-        if self.cuda_graph and self.device.type != "cuda":
+        request = self.cuda_graph_request
+        # cuda_graph=True as asked; auto (None) is decided below, once the networks, optimizers and buffer exist.
+        self.cuda_graph = request is True and self.device.type == "cuda"
+        if request is True and not self.cuda_graph:
             # Construction on a CPU already failed (__init__); this is a GPU-trained model loaded without a GPU.
             warnings.warn(f"cuda_graph=True needs a CUDA device, got {self.device}: training steps run eagerly instead.")
-            self.cuda_graph = False
         if self.bf16 and (slow_bf16 := bf16_on_cpu_warning(self.device)) is not None:
             warnings.warn(slow_bf16)
         optimizer_kwargs = dict(self.policy_kwargs.get("optimizer_kwargs") or {})
         if self.cuda_graph:
-            # CUDA graphs need the optimizer's step counter on the device.
+            # CUDA graphs need the optimizer's step counter on the device (auto sets it in the built optimizers).
             optimizer_kwargs["capturable"] = True
         else:
             optimizer_kwargs.pop("capturable", None)
@@ -336,13 +349,11 @@ class TD3X(OffPolicyAlgorithm):
         # The generators TD3X's own code draws from: the global ones, as SB3's, until a SeedBatch detaches them.
         self.random_streams = RandomStreams(self.device)
         self._link_replay_buffer_streams()
-        if self.cuda_graph:
-            if not isinstance(self.replay_buffer, TensorReplayBuffer):
-                raise ValueError(
-                    "cuda_graph=True samples the replay buffer inside the graph: it needs TD3X's TensorReplayBuffer "
-                    f"(Box observations, n_steps=1, replay_buffer_class=None), got {type(self.replay_buffer).__name__}."
-                )
-            self.replay_buffer.enable_static_sampling()
+        if self.cuda_graph and not isinstance(self.replay_buffer, TensorReplayBuffer):
+            raise ValueError(
+                "cuda_graph=True samples the replay buffer inside the graph: it needs TD3X's TensorReplayBuffer "
+                f"(Box observations, n_steps=1, replay_buffer_class=None), got {type(self.replay_buffer).__name__}."
+            )
         self._step_fn: Any = None
         # Which update train() runs and why, set at its first call (update_paths.choose.choose_update): "mlp"
         # (MlpUpdate), "autograd" (the hooks as written), "compiled_mlp", "compiled", "compiled_eager_backward" or
@@ -352,11 +363,39 @@ class TD3X(OffPolicyAlgorithm):
         self._create_aliases()
         self._critic_lr_schedule = None if self.critic_learning_rate is None else FloatSchedule(self.critic_learning_rate)
         update_learning_rate(self.critic.optimizer, self.critic_lr_schedule(1))
-        if self.cuda_graph:
-            # A float learning rate would be baked into the graphs: keep it in a device tensor, updated in place.
-            for optimizer in (self.actor.optimizer, self.critic.optimizer):
-                for group in optimizer.param_groups:
+        if request is None:
+            why_not = why_not_cuda_graph(self)
+            self._use_cuda_graph(why_not is None, f"cuda_graph=None (auto): {why_not}" if why_not else AUTO_GRAPHS)
+        elif request and not self.cuda_graph:
+            self._use_cuda_graph(False, f"cuda_graph=True, but no CUDA device ({self.device})")
+        else:
+            self._use_cuda_graph(request, f"cuda_graph={request}")
+
+    def _use_cuda_graph(self, on: bool, reason: str) -> None:
+        """Set the model up for gradient steps in CUDA graphs (``on``) or eager ones, and record it with ``reason``.
+
+        Graphs need Adam's step counters on the device (``capturable=True``: set in the param groups before the first
+        step, or after a state is loaded), the learning rates in device tensors (a float would be baked into the
+        graphs; :meth:`_update_learning_rate` fills them in place) and the replay buffer sampled from bounds kept in
+        device tensors. Eager steps take floats, ``capturable=False`` and SB3's sampling: what ``cuda_graph=False``
+        builds. Called by ``_setup_model``, after loading parameters, and by ``choose_update`` (auto stepping aside).
+        """
+        self.cuda_graph, self.cuda_graph_reason = on, reason
+        schedules = {self.actor.optimizer: self.lr_schedule, self.critic.optimizer: self.critic_lr_schedule}
+        for optimizer, schedule in schedules.items():
+            if "capturable" in optimizer.defaults:  # Adam, AdamW and the like; never added to an optimizer without it
+                optimizer.defaults["capturable"] = on
+            for group in optimizer.param_groups:
+                if "capturable" in group:
+                    group["capturable"] = on
+                if on and not isinstance(group["lr"], th.Tensor):
                     group["lr"] = th.tensor(float(group["lr"]), device=self.device)
+                elif not on and isinstance(group["lr"], th.Tensor):
+                    # From the schedule, as _update_learning_rate sets it: the tensor holds it rounded to float32.
+                    group["lr"] = schedule(self._current_progress_remaining)
+        buffer = self.replay_buffer
+        if isinstance(buffer, TensorReplayBuffer) and on != buffer.static_sampling:
+            buffer.enable_static_sampling() if on else buffer.disable_static_sampling()
 
     @property
     def critic_lr_schedule(self) -> Schedule:
@@ -450,9 +489,11 @@ class TD3X(OffPolicyAlgorithm):
         """The gradient step ``train()`` runs, chosen once (:func:`~sb3_td3x.td3x.update_paths.choose.choose_update`)
         and logged: the hooks with autograd, or a faster way that computes the same (``update_path``,
         ``update_reason``)."""
-        # Chosen again when a hook is set on the instance or a network is replaced after the choice (a cheap check
-        # per train() call; changes inside a module after the first train() are not seen: set them before it).
-        watched = (self.actor, self.critic, self.actor_target, self.critic_target, self._instance_hooks())
+        # Chosen again when a hook is set on the instance, or a network, an optimizer, the replay buffer or the
+        # VecNormalize wrapper is replaced after the choice (a cheap check per train() call; changes inside a module
+        # after the first train() are not seen: set them before it).
+        watched = (self.actor, self.critic, self.actor_target, self.critic_target, self._instance_hooks(),
+                   self.actor.optimizer, self.critic.optimizer, self.replay_buffer, self._vec_normalize_env)  # fmt: skip
         chosen_for = self.__dict__.get("_step_fn_for")  # None for a step set from outside (tests): kept
         if self._step_fn is None or (chosen_for is not None and chosen_for != watched):
             choice = choose_update(self)
@@ -716,9 +757,36 @@ class TD3X(OffPolicyAlgorithm):
                 progress_bar=progress_bar,
             )
 
+    @classmethod
+    def load(
+        cls: type[SelfTD3X],
+        path: Any,
+        env: GymEnv | None = None,
+        device: th.device | str = "auto",
+        custom_objects: dict[str, Any] | None = None,
+        print_system_info: bool = False,
+        force_reset: bool = True,
+        **kwargs: Any,
+    ) -> SelfTD3X:
+        """SB3's ``load``. The saved ``cuda_graph`` request (``cuda_graph_request``) is decided again for this machine;
+        ``cuda_graph=...`` among ``kwargs`` replaces it, as the constructor argument would."""
+        if "cuda_graph" in kwargs:
+            kwargs["cuda_graph_request"] = kwargs.pop("cuda_graph")
+        return super().load(path, env, device, custom_objects, print_system_info, force_reset, **kwargs)
+
+    def set_parameters(
+        self, load_path_or_dict: str | TensorDict, exact_match: bool = True, device: th.device | str = "auto"
+    ) -> None:
+        """SB3's ``set_parameters``. A loaded optimizer state brings the options it was saved with (``capturable``
+        and device learning rates from a run in CUDA graphs, floats from an eager one): they are set back to what
+        this model runs. The update is chosen again (graphs captured on the old state tensors would step those)."""
+        super().set_parameters(load_path_or_dict, exact_match, device)
+        self._use_cuda_graph(self.cuda_graph, self.cuda_graph_reason)
+        self._step_fn = self._step_fn_for = None
+
     def load_replay_buffer(self, path: Any, truncate_last_traj: bool = True) -> None:
-        """SB3's ``load_replay_buffer``; with ``cuda_graph=True`` the new buffer samples on the device, and the
-        graphs, captured on the old buffer's tensors, are captured again."""
+        """SB3's ``load_replay_buffer``; where the update runs in CUDA graphs (``cuda_graph``) the new buffer samples
+        on the device, and the graphs, captured on the old buffer's tensors, are captured again."""
         super().load_replay_buffer(path, truncate_last_traj)
         self._link_replay_buffer_streams()
         if self.cuda_graph and isinstance(self.replay_buffer, TensorReplayBuffer):
@@ -739,6 +807,8 @@ class TD3X(OffPolicyAlgorithm):
             "random_streams",
             "update_path",
             "update_reason",
+            "cuda_graph",  # decided again when loaded, from cuda_graph_request (saved) and this machine
+            "cuda_graph_reason",
             "exploration_path",
             "_actor_params",
             "_actor_target_params",

@@ -77,13 +77,14 @@ def test_sb3_td3_config_runs_the_td3_settings_and_refuses_td3x_only_switches():
         if key != "action_noise":
             assert sb3[key] == td3[key], key
     for override in ("algo.target_policy_smoothing=false", "algo.clipped_double_q=false", "algo.critic_learning_rate=3e-4",
-                     "algo.compile_update=true", "algo.mlp_update=false"):
+                     "algo.compile_update=true", "algo.mlp_update=false", "algo.cuda_graph=false", "algo.cuda_graph=true"):
         with pytest.raises(ConfigError, match="SB3's TD3 .* has no such option"):
             algorithm_kwargs(compose_config(["algo=sb3_td3", override]).algo, n_actions=1)
 
 
-def test_the_opt_in_accelerations_are_config_switches():
-    """algo.bf16, algo.compile_update and algo.cuda_graph reach TD3X; cuda_graph without a GPU is a config error."""
+def test_the_accelerations_are_config_switches():
+    """algo.bf16, algo.compile_update and algo.cuda_graph reach TD3X; algo.cuda_graph is null (auto, the default),
+    true or false; cuda_graph=true without a GPU is a config error."""
     cfg = compose_config(["algo=td3", "algo.buffer_size=1000", "device=cpu", "algo.compile_update=true", "algo.bf16=true"])
     check_config(cfg)
     env = make_train_env(cfg.env, n_envs=1, seed=0)
@@ -93,6 +94,11 @@ def test_the_opt_in_accelerations_are_config_switches():
     assert (model.bf16, model.compile_update, model.cuda_graph) == (True, True, False)
     defaults = build_algorithm(compose_config(["algo=td3", "algo.buffer_size=1000", "device=cpu"]), env)
     assert (defaults.bf16, defaults.compile_update, defaults.cuda_graph) == (False, False, False)
+    assert defaults.cuda_graph_request is None and defaults.cuda_graph_reason == "cuda_graph=None (auto): no CUDA device"
+    for value, request in (("null", None), ("false", False), ("true", True)):
+        assert compose_config([f"algo.cuda_graph={value}"]).algo.cuda_graph is request
+    opted_out = build_algorithm(compose_config(["algo=td3", "algo.buffer_size=1000", "device=cpu", "algo.cuda_graph=false"]), env)
+    assert (opted_out.cuda_graph_request, opted_out.cuda_graph) == (False, False)
     with pytest.raises(ConfigError, match="cuda_graph=True needs a CUDA device"):
         build_algorithm(compose_config(["algo=td3", "algo.buffer_size=1000", "device=cpu", "algo.cuda_graph=true"]), env)
     env.close()

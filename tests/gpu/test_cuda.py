@@ -6,7 +6,10 @@ fail when the maths differs:
 
 - ``cuda_graph=True``: the graph replays compute the eager gradient steps (same weights, same random draws), with
   SB3's MLP and with an overridden hook;
-- the default update (``MlpUpdate``) on the GPU: a seeded ``learn()`` ends where SB3's ``TD3`` on the GPU ends;
+- the default (``cuda_graph=None``, auto): CUDA graphs for a stock model; a hook set after construction makes it
+  step aside to the eager update, which then trains as ``cuda_graph=False`` does;
+- the eager update (``MlpUpdate``, ``cuda_graph=False``) on the GPU: a seeded ``learn()`` ends where SB3's ``TD3`` on
+  the GPU ends;
 - ``SeedBatch`` on the GPU (all seeds in one product, per-seed CUDA generators): each seed ends where its lone run
   ends.
 """
@@ -116,6 +119,29 @@ def test_cuda_graph_learn_save_load_and_go_on(tmp_path):
     assert all(th.isfinite(p).all() for p in loaded.policy.parameters())
 
 
+def test_the_default_takes_cuda_graphs_for_a_stock_model_and_steps_aside_for_a_change():
+    def make(**kwargs) -> TD3X:
+        return TD3X("MlpPolicy", "Pendulum-v1", learning_starts=100, batch_size=64, seed=2, device="cuda",
+                    policy_kwargs={"net_arch": [32, 32]}, **kwargs)
+
+    stock = make()
+    assert stock.cuda_graph_request is None and stock.cuda_graph and stock.replay_buffer.static_sampling
+    stock.learn(300)
+    assert stock.update_path == "cuda_graph" and stock.update_reason.startswith("cuda_graph=None (auto)")
+    assert all(th.isfinite(p).all() for p in stock.policy.parameters())
+
+    changed, eager = make(), make(cuda_graph=False)
+    for model in (changed, eager):  # a hook set after construction: auto was set up for graphs, and steps aside
+        model.td_target = lambda rewards, dones, discounts, next_q, model=model: TD3X.td_target(
+            model, rewards, dones, discounts, next_q)
+        model.set_random_seed(5)
+        model.learn(300)
+    assert changed.update_path == "autograd" and "stepped aside" in changed.update_reason
+    assert not changed.cuda_graph and not changed.replay_buffer.static_sampling
+    for (name, a), b in zip(eager.policy.state_dict().items(), changed.policy.state_dict().values()):
+        th.testing.assert_close(b, a, rtol=1e-5, atol=1e-6, msg=name)
+
+
 def sb3_kwargs(**kwargs) -> dict:
     return dict(learning_starts=100, batch_size=32, policy_delay=2, seed=3, device="cuda",
                 action_noise=NormalActionNoise(np.zeros(1), 0.1 * np.ones(1)),
@@ -124,8 +150,9 @@ def sb3_kwargs(**kwargs) -> dict:
 
 def test_seeded_learn_on_the_gpu_matches_sb3_td3_on_the_gpu():
     sb3 = TD3("MlpPolicy", "Pendulum-v1", **sb3_kwargs())
-    td3x = TD3X("MlpPolicy", "Pendulum-v1", **sb3_kwargs())
-    broken = TD3X("MlpPolicy", "Pendulum-v1", **sb3_kwargs(tau=0.02))  # the comparison must be able to fail
+    # cuda_graph=False: the eager update, whose batches are drawn as SB3 draws them (the graphs draw on the device).
+    td3x = TD3X("MlpPolicy", "Pendulum-v1", **sb3_kwargs(cuda_graph=False))
+    broken = TD3X("MlpPolicy", "Pendulum-v1", **sb3_kwargs(tau=0.02, cuda_graph=False))  # the comparison can fail
     for model in (td3x, broken):
         model.policy.load_state_dict(sb3.policy.state_dict())
     for model in (sb3, td3x, broken):
@@ -139,8 +166,10 @@ def test_seeded_learn_on_the_gpu_matches_sb3_td3_on_the_gpu():
 
 def test_seed_batch_on_the_gpu_computes_the_lone_runs():
     def make(seed, cls=TD3X):
+        # cuda_graph=False: the shared update (a model in CUDA graphs, the default on a GPU, trains alone).
         return cls("MlpPolicy", "Pendulum-v1", seed=seed, learning_starts=100, batch_size=64, device="cuda",
-                   policy_kwargs={"net_arch": [32, 32]}, action_noise=NormalActionNoise(np.zeros(1), 0.1 * np.ones(1)))
+                   cuda_graph=False, policy_kwargs={"net_arch": [32, 32]},
+                   action_noise=NormalActionNoise(np.zeros(1), 0.1 * np.ones(1)))
 
     seeds = (0, 1, 2)
     lone = [make(seed).learn(400) for seed in seeds]

@@ -6,7 +6,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
-from conftest import feed, random_batches
+from conftest import eager_capture, feed, random_batches
 from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.logger import configure
 from stable_baselines3.common.monitor import Monitor
@@ -148,19 +148,6 @@ def test_cuda_graph_needs_cuda():
         small(cuda_graph=True, device="cpu")
 
 
-def eager_capture(fn, pool):
-    """CPU stand-in for CUDA graph capture: 'replay' reruns the step and writes into the static outputs."""
-    outputs = fn()
-
-    def replay():
-        new = fn()
-        for static, fresh in zip(outputs, new):
-            for key in static:
-                static[key].copy_(fresh[key])
-
-    return replay, outputs, pool
-
-
 def test_graphed_step_logic_matches_eager_steps():
     """Warm-up and capture leave no trace (weights, optimizer states, the random generator: the smoothing noise of
     each replay is the eager step's), each (batch size, actor update) gets its graph, outputs are copied."""
@@ -283,12 +270,42 @@ def test_compiled_update_learns_pendulum(bf16):
 
 
 def test_gpu_trained_model_loads_on_cpu_without_graphs(tmp_path):
-    """A model saved with cuda_graph=True (a GPU run) loads on a CPU machine and trains eagerly, with a warning."""
+    """A model saved with cuda_graph=True (a GPU run) loads on a CPU machine and trains eagerly, with a warning: the
+    optimizer state it brings (capturable, learning rates in tensors) is set back for eager steps."""
     model = small()
-    model.cuda_graph = True  # as saved by a GPU run
+    model.cuda_graph_request = True  # as saved by a GPU run with cuda_graph=True, whose optimizers were set up for graphs
+    model._use_cuda_graph(True, "cuda_graph=True")
+    model._step_fn = GraphedGradientStep(model, capture=eager_capture)
+    model.learn(20)
     model.save(tmp_path / "gpu_model")
     with pytest.warns(UserWarning, match="cuda_graph=True needs a CUDA device"):
         loaded = TD3X.load(tmp_path / "gpu_model", env=gym.make("Pendulum-v1"), device="cpu")
-    assert loaded.cuda_graph is False
+    assert loaded.cuda_graph is False and loaded.cuda_graph_request is True
     assert "capturable" not in loaded.policy_kwargs.get("optimizer_kwargs", {})
+    for group in (*loaded.actor.optimizer.param_groups, *loaded.critic.optimizer.param_groups):
+        assert group["capturable"] is False and isinstance(group["lr"], float)
     loaded.learn(150)
+    assert loaded.update_path == "mlp"
+
+
+def test_a_changed_setting_captures_the_graphs_again():
+    """gamma, tau and the smoothing noise are Python numbers baked into a captured graph: a change between two
+    train() calls captures anew (a callback annealing the noise is followed, not frozen)."""
+    model = small(policy_delay=1)
+    model.replay_buffer.enable_static_sampling()
+    feed(model, batches(40))
+    captures = []
+
+    class Counting(GraphedGradientStep):
+        def _capture(self, batch_size, update_actor):
+            captures.append(batch_size)
+            return super()._capture(batch_size, update_actor)
+
+    model._step_fn = Counting(model, capture=eager_capture)
+    model.train(gradient_steps=2, batch_size=32)
+    model.train(gradient_steps=2, batch_size=32)
+    assert len(captures) == 1  # nothing changed: the graph is replayed
+    for name, value in (("target_policy_noise", 0.1), ("gamma", 0.9), ("tau", 0.01)):
+        setattr(model, name, value)
+        model.train(gradient_steps=2, batch_size=32)
+    assert len(captures) == 4

@@ -1,18 +1,27 @@
 """How the update runs: one function picks it, says why, and the layout has no import circle."""
 
 import ast
+import functools
+import importlib
+import warnings
 from pathlib import Path
 
 import gymnasium as gym
 import pytest
 import torch as th
-from stable_baselines3.common.logger import HumanOutputFormat, Logger
+from conftest import eager_capture
+from stable_baselines3.common.buffers import ReplayBuffer
+from stable_baselines3.common.logger import HumanOutputFormat, Logger, configure
+from stable_baselines3.common.save_util import load_from_zip_file
+from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
 from sb3_td3x.experiment.errors import ConfigError
 from sb3_td3x.experiment.schemas import check_config, compose_config, whole_float_problems
 from sb3_td3x.td3x import TD3X, TD3XCritic, TD3XPolicy, UnsupportedActionSpace
 from sb3_td3x.td3x.hooks import HOOK_NAMES, HOOKS, changed_hooks, reference_class
-from sb3_td3x.td3x.update_paths.choose import choose_update
+from sb3_td3x.td3x.update_paths import choose
+from sb3_td3x.td3x.update_paths.choose import AUTO_GRAPHS, choose_update
+from sb3_td3x.td3x.update_paths.cuda_graph import GraphedGradientStep, why_not_cuda_graph
 
 PACKAGE = Path(__file__).resolve().parents[2] / "sb3_td3x" / "td3x"
 
@@ -168,6 +177,231 @@ def test_no_import_circle_in_the_algorithm_package():
 
     for name in graph:
         visit(name, [])
+
+
+# cuda_graph=None (auto): CUDA graphs only for a stock, capturable update ------------------------------------------
+class TargetOverride(TD3X):
+    def update_critic_target(self):
+        super().update_critic_target()
+
+
+class SampleOverride(TD3X):
+    def sample_batch(self, batch_size):
+        return super().sample_batch(batch_size)
+
+
+class DictObservation(gym.ObservationWrapper):
+    def __init__(self, env):
+        super().__init__(env)
+        self.observation_space = gym.spaces.Dict({"state": env.observation_space})
+
+    def observation(self, observation):
+        return {"state": observation}
+
+
+def pendulum_vec_normalize() -> VecNormalize:
+    return VecNormalize(DummyVecEnv([lambda: gym.make("Pendulum-v1")]))
+
+
+def with_hook(model: TD3X) -> TD3X:
+    """``td_target`` set on the instance, computing the stock target: a change auto must not freeze in a graph."""
+    model.td_target = lambda rewards, dones, discounts, next_q: TD3X.td_target(model, rewards, dones, discounts, next_q)
+    return model
+
+
+def with_wrapped_critic(model: TD3X) -> TD3X:
+    model.critic.forward = lambda obs, actions, forward=model.critic.forward: forward(obs, actions)
+    return model
+
+
+def with_vec_normalize(model: TD3X) -> TD3X:
+    model.set_env(pendulum_vec_normalize())
+    return model
+
+
+def small_then(change):
+    """A builder of ``small()`` with ``change(model)`` made after construction."""
+    def build():
+        model = small()
+        change(model)
+        return model
+
+    return build
+
+
+@pytest.mark.parametrize(
+    ("build", "reason"),
+    [
+        (small, None),
+        (lambda: small(policy_kwargs={"net_arch": [16], "optimizer_class": th.optim.AdamW}), None),
+        (lambda: small(compile_update=True), "compile_update=True"),
+        (lambda: small(bf16=True), "bf16=True"),
+        (lambda: small(mlp_update=False), "mlp_update=False"),
+        (lambda: small(n_steps=3), "the replay buffer is a NStepReplayBuffer, not TD3X's TensorReplayBuffer"),
+        (lambda: small(replay_buffer_class=ReplayBuffer), "the replay buffer is a ReplayBuffer, not"),
+        (lambda: TD3X("MultiInputPolicy", DictObservation(gym.make("Pendulum-v1")), policy_kwargs={"net_arch": [16]}),
+         "the replay buffer is a DictReplayBuffer, not"),
+        (lambda: TD3X("MlpPolicy", pendulum_vec_normalize(), policy_kwargs={"net_arch": [16]}),
+         "VecNormalize normalises the samples on the host"),
+        (lambda: small(policy_kwargs={"net_arch": [16], "optimizer_class": th.optim.SGD}),
+         "the actor's optimizer is SGD, not torch's Adam or AdamW"),
+        (small_then(lambda m: m.critic.optimizer.register_step_post_hook(lambda *args: None)),
+         "step hooks on the critic's optimizer"),
+        (lambda: TargetOverride("MlpPolicy", "Pendulum-v1", policy_kwargs={"net_arch": [16]}),
+         "update_critic_target overridden by TargetOverride"),
+        (lambda: SampleOverride("MlpPolicy", "Pendulum-v1", policy_kwargs={"net_arch": [16]}),
+         "sample_batch overridden by SampleOverride"),
+        (small_then(with_hook), "td_target set on the instance"),
+        (small_then(with_wrapped_critic), "critic.forward set on the instance"),
+        (lambda: small(ScaledCriticPolicy), "critic.forward overridden by ScaledCritic"),
+        (lambda: small(policy_kwargs={"net_arch": [16], "activation_fn": th.nn.Tanh}), "not a ReLU MLP"),
+        (small_then(lambda m: m.critic.q_networks[0].register_forward_hook(lambda *args: None)),
+         "a forward hook on policy.critic.qf0"),
+        (small_then(lambda m: m.actor.mu[0].weight.register_hook(lambda grad: grad)), "a gradient hook on actor.mu.0.weight"),
+    ],
+    ids=["stock", "adamw", "compile_update", "bf16", "mlp_update_false", "n_steps", "sb3_buffer", "dict_obs",
+         "vec_normalize", "sgd", "optimizer_hook", "subclass_hook", "sample_batch", "instance_hook", "wrapped_critic",
+         "subclassed_critic", "tanh", "module_hook", "gradient_hook"],
+)
+def test_auto_takes_cuda_graphs_only_for_a_stock_capturable_update(build, reason):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # bf16 on a CPU without bf16 instructions warns (test_acceleration.py)
+        model = build()
+    assert why_not_cuda_graph(model) == "no CUDA device"  # this machine's
+    got = why_not_cuda_graph(model, device="cuda")
+    if reason is None:
+        assert got is None
+    else:
+        assert got is not None and reason in got
+
+
+def test_cuda_graph_is_none_true_or_false():
+    with pytest.raises(ValueError, match=r"invalid cuda_graph='auto'; cuda_graph must be None \(auto"):
+        small(cuda_graph="auto")
+
+
+def test_on_a_cpu_auto_is_the_eager_update_of_before(tmp_path):
+    model = small()
+    assert (model.cuda_graph_request, model.cuda_graph) == (None, False)
+    assert model.cuda_graph_reason == "cuda_graph=None (auto): no CUDA device"
+    assert not model.replay_buffer.static_sampling
+    for group in (*model.actor.optimizer.param_groups, *model.critic.optimizer.param_groups):
+        assert group["capturable"] is False and isinstance(group["lr"], float)
+    assert first_update_line(model, tmp_path).startswith("update: mlp (MlpUpdate: ")
+
+
+def pretend_cuda(monkeypatch) -> None:
+    """Auto decides as on a CUDA device, and the graphs are captured by the CPU stand-in (``eager_capture``): all but
+    the device and the capture itself runs as it would on a GPU."""
+    pretend = functools.partial(why_not_cuda_graph, device="cuda")
+    monkeypatch.setattr(importlib.import_module("sb3_td3x.td3x.td3x"), "why_not_cuda_graph", pretend)
+    monkeypatch.setattr(choose, "why_not_cuda_graph", pretend)
+    monkeypatch.setattr(choose, "GraphedGradientStep", functools.partial(GraphedGradientStep, capture=eager_capture))
+
+
+def set_up_for(model: TD3X) -> str:
+    """What the optimizers and the buffer are set up for: "graphs", "eager", or "mixed" (a bug)."""
+    groups = [*model.actor.optimizer.param_groups, *model.critic.optimizer.param_groups]
+    graphs = [group.get("capturable", False) for group in groups] + [isinstance(group["lr"], th.Tensor) for group in groups]
+    graphs.append(model.replay_buffer.static_sampling)
+    return "graphs" if all(graphs) else "eager" if not any(graphs) else "mixed"
+
+
+def test_auto_runs_a_stock_model_in_cuda_graphs(monkeypatch, tmp_path):
+    pretend_cuda(monkeypatch)
+    model = small()
+    assert model.cuda_graph and model.cuda_graph_reason == AUTO_GRAPHS and set_up_for(model) == "graphs"
+    line = first_update_line(model, tmp_path)
+    assert line.startswith(f"update: cuda_graph ({AUTO_GRAPHS})")
+    assert isinstance(model._step_fn, GraphedGradientStep) and sorted(model._step_fn._graphs) == [(256, False), (256, True)]
+    assert model._n_updates == 10 and all(th.isfinite(p).all() for p in model.policy.parameters())
+
+
+@pytest.mark.parametrize(
+    ("change", "path", "reason"),
+    [
+        (with_hook, "autograd", "td_target set on the instance"),
+        (with_wrapped_critic, "autograd", "critic.forward set on the instance"),
+        (with_vec_normalize, "mlp", "VecNormalize normalises the samples on the host; MlpUpdate: "),
+    ],
+    ids=["instance_hook", "wrapped_critic", "vec_normalize"],
+)
+def test_auto_steps_aside_for_a_change_made_after_construction(monkeypatch, change, path, reason):
+    """Set up for graphs when built, the model is changed before its first train(): the eager choice runs, set up as
+    with cuda_graph=False, and trains what such a model trains from the same seed."""
+    pretend_cuda(monkeypatch)
+    auto, eager = small(), small(cuda_graph=False)
+    assert set_up_for(auto) == "graphs" and set_up_for(eager) == "eager"
+    for model in (auto, eager):
+        change(model).set_logger(configure(None, []))
+        model.set_random_seed(1)  # the same generators (and env seeds) for both
+        model.learn(40)
+    assert (auto.update_path, eager.update_path) == (path, path)
+    assert auto.update_reason.startswith(f"cuda_graph=None (auto) stepped aside from CUDA graphs: {reason}")
+    assert not auto.cuda_graph and auto.cuda_graph_reason.startswith("cuda_graph=None (auto) stepped aside")
+    assert set_up_for(auto) == "eager"
+    for (name, a), b in zip(eager.policy.state_dict().items(), auto.policy.state_dict().values()):
+        assert th.equal(a, b), name
+
+
+def replaced_critic_optimizer(model: TD3X) -> TD3X:
+    model.critic.optimizer = th.optim.SGD(model.critic.parameters(), lr=1e-3)
+    return model
+
+
+@pytest.mark.parametrize(
+    ("change", "path", "reason"),
+    [
+        (with_hook, "autograd", "td_target set on the instance"),
+        (with_vec_normalize, "mlp", "VecNormalize normalises the samples on the host"),
+        (replaced_critic_optimizer, "mlp", "the critic's optimizer is SGD, not torch's Adam or AdamW"),
+    ],
+    ids=["instance_hook", "vec_normalize", "critic_optimizer"],
+)
+def test_auto_steps_aside_for_a_change_made_after_the_graphs_ran(monkeypatch, change, path, reason):
+    pretend_cuda(monkeypatch)
+    model = small()
+    model.set_logger(configure(None, []))
+    model.learn(20)
+    assert model.update_path == "cuda_graph"
+    change(model).learn(20, reset_num_timesteps=False)
+    assert model.update_path == path and f"stepped aside from CUDA graphs: {reason}" in model.update_reason
+    assert set_up_for(model) == "eager" and model._n_updates == 30
+
+
+def test_a_model_saved_with_auto_loads_where_there_is_no_cuda_and_trains_eagerly(monkeypatch, tmp_path):
+    pretend_cuda(monkeypatch)
+    model = small()
+    model.set_logger(configure(None, []))
+    model.learn(20)  # in graphs: the optimizers' states are saved with capturable=True and learning rates in tensors
+    model.save(tmp_path / "auto")
+    data, _, _ = load_from_zip_file(tmp_path / "auto")
+    assert data["cuda_graph_request"] is None and "cuda_graph" not in data and "cuda_graph_reason" not in data
+    monkeypatch.undo()  # a machine without CUDA
+    with warnings.catch_warnings(record=True) as record:
+        warnings.simplefilter("always")
+        loaded = TD3X.load(tmp_path / "auto", env=gym.make("Pendulum-v1"), device="cpu")
+    assert not [w for w in record if "cuda" in str(w.message).lower() or "capturable" in str(w.message)]
+    assert loaded.cuda_graph_request is None and loaded.cuda_graph_reason == "cuda_graph=None (auto): no CUDA device"
+    assert set_up_for(loaded) == "eager"
+    loaded.set_logger(configure(None, []))
+    loaded.learn(20)
+    assert loaded.update_path == "mlp"
+
+
+def test_a_model_saved_eagerly_loads_into_cuda_graphs_and_load_takes_cuda_graph(monkeypatch, tmp_path):
+    small().save(tmp_path / "eager")  # on this CPU: capturable=False and float learning rates in its optimizer states
+    pretend_cuda(monkeypatch)
+    loaded = TD3X.load(tmp_path / "eager", env=gym.make("Pendulum-v1"))
+    assert loaded.cuda_graph and set_up_for(loaded) == "graphs"  # set up again after the optimizer states were loaded
+    loaded.set_logger(configure(None, []))
+    loaded.learn(20)
+    assert loaded.update_path == "cuda_graph"
+    opted_out = TD3X.load(tmp_path / "eager", env=gym.make("Pendulum-v1"), cuda_graph=False)
+    assert (opted_out.cuda_graph_request, opted_out.cuda_graph, set_up_for(opted_out)) == (False, False, "eager")
+    monkeypatch.undo()
+    with pytest.warns(UserWarning, match="cuda_graph=True needs a CUDA device"):
+        TD3X.load(tmp_path / "eager", env=gym.make("Pendulum-v1"), cuda_graph=True)
 
 
 # Drop-in details -----------------------------------------------------------------------------------------------------

@@ -15,7 +15,9 @@ assumes (``requirements(model)``, checked conservatively: when in doubt, the use
                           compiled with ``torch.func`` gradients                      ``update_from_batch``
 ``"compiled_eager_backward"``  ``update_from_batch`` compiled as it is               ``gradient_step``
 ``"cuda_graph"``          :class:`~.cuda_graph.GraphedGradientStep`: the hooks as     nothing
-                          written, captured in CUDA graphs
+                          written, captured in CUDA graphs (``cuda_graph=True``, or
+                          by default where :func:`~.cuda_graph.why_not_cuda_graph`
+                          proves the update stock and capturable)
 ========================  ==========================================================  ==============================
 
 Collection has its own shortcut, :class:`~.exploration.DirectMlpActor`, chosen by

@@ -11,7 +11,7 @@ import torch as th
 
 from sb3_td3x.td3x.hooks import changed_hooks
 from sb3_td3x.td3x.update_paths.compiled import FunctionalCompiledUpdate, compiled_step
-from sb3_td3x.td3x.update_paths.cuda_graph import GraphedGradientStep
+from sb3_td3x.td3x.update_paths.cuda_graph import GraphedGradientStep, why_not_cuda_graph
 from sb3_td3x.td3x.update_paths.mlp import MlpUpdate
 
 if TYPE_CHECKING:
@@ -19,6 +19,12 @@ if TYPE_CHECKING:
 
 Infos = tuple[dict[str, th.Tensor], dict[str, th.Tensor]]
 StepFn = Callable[[int, bool], Infos]
+
+#: ``cuda_graph_reason`` and ``update_reason`` where auto runs the update in CUDA graphs.
+AUTO_GRAPHS = (
+    "cuda_graph=None (auto): a CUDA device, the tensor replay buffer, Adam, and the hooks as written with SB3's ReLU "
+    "MLP actor and critics, captured in CUDA graphs"
+)
 
 
 @dataclass
@@ -38,14 +44,30 @@ def _sampled(model: TD3X, update: Callable[[object, bool], Infos]) -> StepFn:
 def choose_update(model: TD3X) -> UpdateChoice:
     """The way ``model``'s gradient steps run, and why: the fastest one that computes what its code computes.
 
-    In order: ``cuda_graph=True`` captures the hooks as written; ``compile_update=True`` compiles ``MlpUpdate`` where
-    it applies, else the hooks (functional, else as they are); otherwise ``MlpUpdate`` where it applies, else the
-    hooks with autograd. ``mlp_update=False`` rules ``MlpUpdate`` out.
+    In order: ``cuda_graph=True`` captures the hooks as written; ``cuda_graph=None`` (auto) set up for graphs when
+    the model was built captures them where :func:`why_not_cuda_graph` still finds the update stock, and otherwise
+    steps aside (the model is set up for eager steps again) to what follows, saying why; ``compile_update=True``
+    compiles ``MlpUpdate`` where it applies, else the hooks (functional, else as they are); otherwise ``MlpUpdate``
+    where it applies, else the hooks with autograd. ``mlp_update=False`` rules ``MlpUpdate`` out.
     """
     if model.cuda_graph:
-        return UpdateChoice(
-            "cuda_graph", "cuda_graph=True: the hooks as written, captured in CUDA graphs", GraphedGradientStep(model)
-        )
+        if model.cuda_graph_request:
+            return UpdateChoice(
+                "cuda_graph", "cuda_graph=True: the hooks as written, captured in CUDA graphs", GraphedGradientStep(model)
+            )
+        why = why_not_cuda_graph(model)
+        if why is None:
+            model._use_cuda_graph(True, AUTO_GRAPHS)  # again: an optimizer or the buffer may have been replaced
+            return UpdateChoice("cuda_graph", AUTO_GRAPHS, GraphedGradientStep(model))
+        model._use_cuda_graph(False, f"cuda_graph=None (auto) stepped aside from CUDA graphs: {why}")
+        eager = _eager_choice(model)
+        said = model.cuda_graph_reason if eager.reason == why else f"{model.cuda_graph_reason}; {eager.reason}"
+        return UpdateChoice(eager.path, said, eager.step)
+    return _eager_choice(model)
+
+
+def _eager_choice(model: TD3X) -> UpdateChoice:
+    """:func:`choose_update` without CUDA graphs."""
     if not getattr(model, "mlp_update", True):
         mlp_reason: str | None = "mlp_update=False"
     else:
@@ -90,4 +112,4 @@ def choose_update(model: TD3X) -> UpdateChoice:
     return UpdateChoice("autograd", mlp_reason, model.gradient_step)
 
 
-__all__ = ["UpdateChoice", "choose_update"]
+__all__ = ["AUTO_GRAPHS", "UpdateChoice", "choose_update", "why_not_cuda_graph"]

@@ -1,21 +1,82 @@
-"""``cuda_graph=True``: the whole gradient step, sampling included, captured in CUDA graphs and replayed.
+"""CUDA graphs: the whole gradient step, sampling included, captured in CUDA graphs and replayed.
 
-It runs :meth:`TD3X.gradient_step` as it is (every hook as written, overridden or not), so it replaces no hook;
-what it requires (a CUDA device, the tensor replay buffer, capturable Adam) is checked when the model is built.
+:class:`GraphedGradientStep` runs :meth:`TD3X.gradient_step` as it is (every hook as written, overridden or not), so
+it replaces no hook. A graph replays the kernels its capture launched, never the Python that launched them: what a
+hook decides in Python at the capture is frozen into it. ``cuda_graph=True`` captures the hooks as they are (the
+user vouches for them); what it requires (a CUDA device, the tensor replay buffer, capturable Adam) is checked when
+the model is built. ``cuda_graph=None``, the default, captures only where :func:`why_not_cuda_graph` proves the
+update stock and capturable.
 """
 
 from __future__ import annotations
 
 import contextlib
+import warnings
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 import torch as th
 
+from sb3_td3x.common.buffers import TensorReplayBuffer
+from sb3_td3x.common.torch_internals import global_optimizer_hooks, optimizer_step_hooks
+from sb3_td3x.td3x.hooks import changed_hooks
+from sb3_td3x.td3x.update_paths.mlp import MlpUpdate
+
 if TYPE_CHECKING:
     from sb3_td3x.td3x.td3x import TD3X
 
 Infos = tuple[dict[str, th.Tensor], dict[str, th.Tensor]]
+
+#: The optimizers whose step can be captured (``capturable=True``): torch's own classes, not subclasses (whose
+#: ``step`` may do anything).
+CAPTURABLE_OPTIMIZERS = (th.optim.Adam, th.optim.AdamW)
+
+#: The model's settings that the stock hooks read as Python numbers: a capture bakes them into its graph, so a
+#: change (a callback annealing ``target_policy_noise``, say) captures the graphs again.
+GRAPH_SETTINGS = (
+    "gamma", "tau", "target_policy_noise", "target_noise_clip", "target_policy_smoothing", "clipped_double_q",
+)  # fmt: skip
+
+
+def why_not_cuda_graph(model: TD3X, device: th.device | str | None = None) -> str | None:
+    """Why ``cuda_graph=None`` (auto) runs ``model``'s update eagerly instead of in CUDA graphs, or ``None`` where
+    it runs it in graphs: the first condition that fails, in one line.
+
+    Auto takes graphs only for an update it can prove stock and capturable, so that a user's change is never frozen
+    into a graph: a CUDA device; no ``compile_update``, ``bf16`` (bf16 autocast inside graphs is not tested on a
+    GPU) or ``mlp_update=False`` (the hooks, eagerly, with autograd: to compare or to debug); TD3X's
+    ``TensorReplayBuffer``, sampled inside the graph; no ``VecNormalize`` (it normalises the samples on the host);
+    torch's Adam or AdamW for both optimizers, without step hooks; no hook changed, and SB3's ReLU MLP actor and
+    critics as written (:meth:`MlpUpdate.why_not <sb3_td3x.td3x.update_paths.mlp.MlpUpdate.why_not>`: no overridden
+    ``forward``, no module or gradient hook).
+
+    :param model: the TD3X model, built (networks, optimizers and replay buffer)
+    :param device: the device to decide for; ``model.device`` by default (tests on a CPU pass a pretend CUDA one)
+    """
+    device = model.device if device is None else th.device(device)
+    if device.type != "cuda":
+        return "no CUDA device"
+    for switch, value in (("compile_update", True), ("bf16", True), ("mlp_update", False)):
+        if getattr(model, switch) == value:
+            return f"{switch}={value}"
+    if type(model.replay_buffer) is not TensorReplayBuffer:
+        return (
+            f"the replay buffer is a {type(model.replay_buffer).__name__}, not TD3X's TensorReplayBuffer "
+            "(Box observations, n_steps=1, replay_buffer_class=None)"
+        )
+    if model.get_vec_normalize_env() is not None:
+        return "VecNormalize normalises the samples on the host"
+    for role in ("actor", "critic"):
+        optimizer = getattr(model, role).optimizer
+        if type(optimizer) not in CAPTURABLE_OPTIMIZERS:
+            return f"the {role}'s optimizer is {type(optimizer).__name__}, not torch's Adam or AdamW"
+        if optimizer_step_hooks(optimizer) is not False:
+            return f"step hooks on the {role}'s optimizer (or this torch hides them)"
+    if global_optimizer_hooks() is not False:
+        return "global optimizer step hooks (or this torch hides them)"
+    if changed := changed_hooks(model):
+        return "; ".join(changed)
+    return MlpUpdate.why_not(model)
 
 
 def cuda_graph_capture(fn: Callable[[], Infos], pool: Any | None) -> tuple[Callable[[], None], Infos, Any]:
@@ -41,11 +102,13 @@ class GraphedGradientStep:
     """
     The whole gradient step (sampling included) captured once per (batch size, actor update or not) and replayed.
 
-    Requirements, checked by ``TD3X``: a CUDA device, the tensor replay buffer (sampled on the device from bounds
-    kept in device tensors), no ``VecNormalize`` (it normalises on the host), and Adam with ``capturable=True``.
+    Requirements: a CUDA device, the tensor replay buffer (sampled on the device from bounds kept in device
+    tensors), no ``VecNormalize`` (it normalises on the host), and Adam with ``capturable=True`` and its learning
+    rates in device tensors (``TD3X`` sets these up; :func:`why_not_cuda_graph` checks them all for auto).
     The warm-up steps that precede a capture are undone (parameters, optimizer states and the device's random
     generator restored), so capturing does not change what is learned: each replay computes the eager step that
     would have run in its place, with the same random draws (``tests/gpu/test_cuda.py`` checks it on a GPU).
+    A change of one of :data:`GRAPH_SETTINGS` between two calls captures the graphs again.
 
     :param model: the TD3X model
     :param capture: how to capture a step; ``cuda_graph_capture`` on a GPU. Tests on the CPU pass an eager stand-in,
@@ -64,8 +127,13 @@ class GraphedGradientStep:
         self.warmup_steps = warmup_steps
         self._graphs: dict[tuple[int, bool], tuple[Callable[[], None], Infos]] = {}
         self._pool: Any | None = None
+        self._settings: tuple[Any, ...] | None = None  # GRAPH_SETTINGS's values when the graphs were captured
 
     def __call__(self, batch_size: int, update_actor: bool) -> Infos:
+        settings = tuple(getattr(self.model, name) for name in GRAPH_SETTINGS)
+        if settings != self._settings:
+            self._graphs.clear()  # captured with other values baked in
+            self._settings = settings
         key = (batch_size, update_actor)
         if key not in self._graphs:
             self._graphs[key] = self._capture(batch_size, update_actor)
@@ -87,7 +155,9 @@ class GraphedGradientStep:
         context = th.cuda.stream(stream) if stream is not None else contextlib.nullcontext()
         if stream is not None:
             stream.wait_stream(th.cuda.current_stream())
-        with context:
+        with context, warnings.catch_warnings():
+            # torch warns that a capturable optimizer steps outside a capture: these steps are the capture's warm-up.
+            warnings.filterwarnings("ignore", message="This instance was constructed with capturable=True")
             for _ in range(self.warmup_steps):
                 model.gradient_step(batch_size, update_actor)
         if stream is not None:

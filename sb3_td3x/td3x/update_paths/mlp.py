@@ -524,11 +524,13 @@ class MlpUpdate(requirements.FastPath):
     @classmethod
     def why_not_together(cls, models: Sequence[TD3X]) -> str | None:
         """Why these models cannot share one update (every reason, joined), or ``None``: each must be one this
-        update trains (``mlp_update=True``, no ``cuda_graph``), distinct, with the architecture, the device and
+        update trains (``mlp_update=True``, not in CUDA graphs), distinct, with the architecture, the device and
         :data:`SHARED_SETTINGS` of the first."""
         reasons = [f"model {i}: {r}" for i, m in enumerate(models) if (r := cls.why_not(m)) is not None]
         reasons += [f"model {i}: mlp_update=False" for i, m in enumerate(models) if not m.mlp_update]
-        reasons += [f"model {i}: cuda_graph=True" for i, m in enumerate(models) if m.cuda_graph]
+        reasons += [
+            f"model {i}: CUDA graphs (cuda_graph={m.cuda_graph_request})" for i, m in enumerate(models) if m.cuda_graph
+        ]
         params = [p.data_ptr() for m in models for p in m.policy.parameters()]
         if len({id(m) for m in models}) != len(models) or len(set(params)) != len(params):
             reasons.append("a model is given twice, or models share parameters")
