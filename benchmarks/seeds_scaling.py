@@ -27,6 +27,14 @@ reset_num_timesteps=False)``, a GPU synchronized at both ends). Four ways to tra
   cores (a joblib multirun with ``n_jobs=-1`` would run as many jobs as cores at once and queue the rest).
 - ``sb3_procs``: the same with ``stable_baselines3.TD3``. One SB3 process (N = 1) is always measured: it is the
   baseline of the last column (the issue's goal on a GPU: 16 seeds batched at 10x one SB3 TD3 process).
+- ``sbx_procs``: the same with SBX's (JAX) ``TD3`` (``pip install -e ".[peers]"``), the peer users pick for speed:
+  JAX's GPU memory is not preallocated (``XLA_PYTHON_CLIENT_PREALLOCATE=false``: 16 processes share one GPU), and
+  with one thread per process XLA's CPU thread pools are asked for one thread, as ``benchmarks/throughput.py`` does.
+
+**CUDA MPS** (``--mps on``, ``off`` or ``both``): the separate-process modes run with an MPS control daemon started
+for them (``sb3_td3x.experiment.mps``, as ``run.py -m`` starts one on a GPU machine), or without (the driver's time
+slices), or both, each measurement labelled ``<mode>+mps`` when under MPS. Needs a GPU and
+``nvidia-cuda-mps-control``; elsewhere ``on`` and ``both`` stop with a message.
 
 **Separate processes, overlapping windows.** Each process times its own window of ``--steps`` steps; the mode's
 rate is the sum of the N processes' rates (steps / own window), the usual measure of throughput of concurrent
@@ -80,9 +88,28 @@ from stable_baselines3.common.utils import get_device
 
 from sb3_td3x import TD3X, SeedBatch
 
-MODES = ("batched", "batched_per_core", "td3x_procs", "sb3_procs")
+MODES = ("batched", "batched_per_core", "td3x_procs", "sb3_procs", "sbx_procs")
 BATCHED_MODES = ("batched", "batched_per_core")
-ALGORITHMS = {"td3x_procs": TD3X, "sb3_procs": TD3}
+ALGORITHMS = {"td3x_procs": TD3X, "sb3_procs": TD3}  # sbx_procs: sbx_td3(), imported in its own processes
+MPS_SUFFIX = "+mps"
+
+
+def base_mode(mode: str) -> str:
+    """The way of training of a measurement's label (``td3x_procs+mps`` is ``td3x_procs`` under CUDA MPS)."""
+    return mode.removesuffix(MPS_SUFFIX)
+
+
+def sbx_td3(threads: int) -> type:
+    """SBX's TD3, imported in a worker process: JAX's GPU memory allocated as needed (not 75% of the GPU per process),
+    and with one thread XLA's CPU pools of one thread (they are sized when JAX starts)."""
+    os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
+    if threads == 1:
+        os.environ["XLA_FLAGS"] = (
+            os.environ.get("XLA_FLAGS", "") + " --xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
+        ).strip()
+    from sbx import TD3 as SbxTD3
+
+    return SbxTD3
 # TD3's hyperparameters (Fujimoto et al. 2018, Table 3; conf/algo/td3.yaml), the same for every mode.
 PAPER = {
     "learning_rate": 1e-3,
@@ -143,8 +170,11 @@ def worker(config: Config, mode: str, seeds: list[int], threads: int, pad: bool,
     put the record in ``results``; then, with ``pad``, train on untimed until ``done`` is set."""
     try:
         th.set_num_threads(threads)
+        mode = base_mode(mode)
         if mode in BATCHED_MODES:
             trainer = SeedBatch(lambda seed: make_model(TD3X, config, seed), seeds)
+        elif mode == "sbx_procs":
+            trainer = make_model(sbx_td3(threads), config, seeds[0])
         else:
             trainer = make_model(ALGORITHMS[mode], config, seeds[0])
         trainer.learn(config.learning_starts + config.warmup)  # past learning_starts: every step from here trains
@@ -250,6 +280,7 @@ def combine(mode: str, n_seeds: int, threads: int, records: list[dict]) -> dict:
 def seed_groups(mode: str, n_seeds: int, threads: int) -> list[list[int]]:
     """The seeds of each process: all in one (``batched``), one batch per thread (``batched_per_core``: as even as
     possible, ``min(N, threads)`` processes), or one seed each."""
+    mode = base_mode(mode)
     if mode == "batched":
         return [list(range(n_seeds))]
     if mode == "batched_per_core":
@@ -262,7 +293,7 @@ def threads_for(mode: str, n_seeds: int, threads: int) -> int:
     """Torch threads of each process: all of ``threads`` for the batch, the cores shared among the processes else."""
     from sb3_td3x.experiment.cli import threads_per_job  # here: it imports Hydra, which the workers do without
 
-    if mode == "batched":
+    if base_mode(mode) == "batched":
         return threads
     return threads_per_job(len(seed_groups(mode, n_seeds, threads)), threads)
 
@@ -318,7 +349,8 @@ def ratios(rows: dict[tuple[str, int], dict], seeds: list[int]) -> list[dict]:
 def print_table(rows: dict[tuple[str, int], dict], seeds: list[int]) -> None:
     baseline = rows[("sb3_procs", 1)]["seed_steps_per_s"]
     print(f"\n{'N':>3}  {'mode':<16} {'procs x threads':>15} {'seed-steps/s':>13} {'per seed':>9} {'/ one SB3 proc':>15}")
-    for (mode, n), row in sorted(rows.items(), key=lambda item: (item[0][1], MODES.index(item[0][0]))):
+    order = lambda item: (item[0][1], MODES.index(base_mode(item[0][0])), item[0][0])  # noqa: E731
+    for (mode, n), row in sorted(rows.items(), key=order):
         rate = row["seed_steps_per_s"]
         note = ""
         if mode in BATCHED_MODES and row["processes"] < n and any(p != "seed_stacked_mlp" for p in row["update_paths"]):
@@ -382,7 +414,7 @@ def parse_arguments(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--env", default="Hopper-v5")
     parser.add_argument("--batch-size", type=int, default=100)
     parser.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 4, 8], help="the N to measure")
-    parser.add_argument("--modes", nargs="+", choices=MODES, default=list(MODES))
+    parser.add_argument("--modes", nargs="+", choices=MODES, default=[m for m in MODES if m != "sbx_procs"])
     parser.add_argument("--steps", type=int, default=2_000, help="timed environment steps per seed")
     parser.add_argument("--warmup", type=int, default=500, help="untimed training steps past learning_starts")
     parser.add_argument("--learning-starts", type=int, default=1_000)
@@ -397,6 +429,9 @@ def parse_arguments(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--device", default="auto", help="cpu, cuda, cuda:1, auto (SB3's: cuda when there is one)")
     parser.add_argument("--repeats", type=int, default=1, help="runs of the whole plan; the table shows medians")
     parser.add_argument("--json", help="write every measurement, the machine, the commit and the command here")
+    parser.add_argument(
+        "--mps", choices=("off", "on", "both"), default="off", help="the separate-process modes under CUDA MPS (GPU)"
+    )
     args = parser.parse_args(argv)
     if args.env not in gym.registry:
         parser.error(f"--env: no gymnasium environment {args.env!r} (for example Hopper-v5, Ant-v5, Pendulum-v1)")
@@ -424,7 +459,37 @@ def parse_arguments(argv: list[str] | None = None) -> argparse.Namespace:
         parser.error(f"--device {args.device}: torch sees no CUDA device here")
     args.device = str(get_device(args.device))
     args.modes = list(dict.fromkeys(args.modes))
+    if "sbx_procs" in args.modes:
+        try:
+            import sbx  # noqa: F401
+        except ImportError:
+            parser.error('--modes sbx_procs: sbx-rl is not installed (pip install -e ".[peers]")')
+    if args.mps != "off":
+        from sb3_td3x.experiment import mps
+
+        if th.device(args.device).type != "cuda" or mps.decide(2, True, True, Path("/tmp")).reason.startswith(
+            ("no CUDA", mps.CONTROL)
+        ):
+            parser.error(f"--mps {args.mps}: needs a CUDA device and {mps.CONTROL} (device {args.device})")
+        if args.mps == "on":
+            args.modes = [m + MPS_SUFFIX if m not in BATCHED_MODES else m for m in args.modes]
+        else:
+            args.modes += [m + MPS_SUFFIX for m in args.modes if m not in BATCHED_MODES]
     return args
+
+
+def shared_gpu(mode: str, n_seeds: int):
+    """An MPS control daemon for the processes of a ``+mps`` measurement (started before them, stopped after),
+    else nothing."""
+    import contextlib
+    import tempfile
+
+    from sb3_td3x.experiment import mps
+
+    if not mode.endswith(MPS_SUFFIX) or n_seeds < 2:
+        return contextlib.nullcontext()
+    folder = Path(tempfile.gettempdir()) / f"td3x-mps-bench-{os.getpid()}"
+    return mps.SharedGpu(mps.decide(n_seeds, True, True, folder), folder)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -448,7 +513,8 @@ def main(argv: list[str] | None = None) -> None:
     measurements = []
     for repeat in range(args.repeats):
         for mode, n in plan(args.modes, args.seeds):
-            m = measure(config, mode, n, threads_for(mode, n, args.threads), args.threads)
+            with shared_gpu(mode, n):
+                m = measure(config, mode, n, threads_for(mode, n, args.threads), args.threads)
             m["repeat"] = repeat
             measurements.append(m)
             rates = ", ".join(f"{r['steps_per_s']:.1f}" for r in m["per_process"])

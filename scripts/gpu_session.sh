@@ -9,6 +9,7 @@
 #          against SB3's TD3 (Ant-v5, HalfCheetah-v5), and
 #          the many-seeds benchmark (SeedBatch against separate TD3X and SB3 processes, up to 16 seeds).
 # sb3_seeds: 16 separate SB3 processes on the GPU, the many-seeds baseline that measure's time limit leaves out.
+# seeds16: 16 Ant seeds every way (one SeedBatch, TD3X, SB3 and SBX processes), the processes with and without MPS.
 # suite:   the whole test suite on the GPU machine (device "auto" is CUDA there), W&B tests left out (no wandb wheel).
 # Everything goes to $OUT (at most 8 files come back). Each part has its own time limit, so that a slow one does not
 # take the others' results with it. First run: 2026-11-23 (H100), see docs/performance.md.
@@ -54,6 +55,16 @@ if [ "$part" = measure ]; then
     --json "$OUT/seeds_cuda.json" > "$OUT/seeds.txt" 2>&1
   echo "seeds rc=$?" >> "$OUT/seeds.txt"
   tail -n 4 "$OUT"/tests_cuda.txt; tail -n 30 "$OUT"/throughput.txt; tail -n 25 "$OUT"/seeds.txt
+elif [ "$part" = seeds16 ]; then
+  # Issue 35's 16-seed table: every way of training 16 Ant seeds on the machine, the separate processes with and
+  # without CUDA MPS (benchmarks/seeds_scaling.py --mps both); SBX's processes where sbx-rl imports (its wheels and
+  # flax/optax/tensorflow-probability are not among .whl/'s yet: add them to scripts/gpu_wheels.sh).
+  modes="batched td3x_procs sb3_procs"
+  python3 -c "import sbx" 2>/dev/null && modes="$modes sbx_procs"
+  timeout 560 python3 benchmarks/seeds_scaling.py --env Ant-v5 --batch-size 256 --device cuda --seeds 16 \
+    --modes $modes --mps both --steps 300 --warmup 100 --json "$OUT/seeds16_mps.json" > "$OUT/seeds16_mps.txt" 2>&1
+  echo "seeds16 rc=$?" >> "$OUT/seeds16_mps.txt"
+  tail -n 14 "$OUT/seeds16_mps.txt"
 elif [ "$part" = sb3_seeds ]; then
   # The baseline the measure part's time limit cut off: 16 separate SB3 processes (N=1 and 4 are in its table).
   timeout 200 python3 benchmarks/seeds_scaling.py --env Ant-v5 --batch-size 256 --device cuda --seeds 16 \

@@ -104,3 +104,10 @@ def test_one_batch_per_core_splits_the_seeds_evenly(scaling):
     assert scaling.seed_groups("batched_per_core", 1, 2) == [[0]]
     assert scaling.seed_groups("batched", 4, 2) == [[0, 1, 2, 3]]
     assert scaling.seed_groups("td3x_procs", 3, 2) == [[0], [1], [2]]
+
+
+def test_a_measurement_under_mps_is_the_same_way_of_training_labelled(scaling):
+    assert scaling.base_mode("td3x_procs+mps") == "td3x_procs" and scaling.base_mode("batched") == "batched"
+    assert scaling.seed_groups("td3x_procs+mps", 4, 2) == scaling.seed_groups("td3x_procs", 4, 2) == [[0], [1], [2], [3]]
+    assert scaling.threads_for("sbx_procs+mps", 2, 2) == scaling.threads_for("sbx_procs", 2, 2) == 1
+    assert "sbx_procs" not in scaling.parse_arguments([]).modes  # SBX only when asked (an optional dependency)
