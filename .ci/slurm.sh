@@ -62,7 +62,7 @@ _sb3_td3x_start_slurm() (
   cat >"$CONF.new" <<CONF_END
 # sb3-td3x: a one-node cluster for the cluster tests (.ci/slurm.sh); not for production
 ClusterName=td3x
-SlurmctldHost=$node
+SlurmctldHost=$node(127.0.0.1)
 SlurmUser=root
 SlurmdUser=root
 AuthType=auth/munge
@@ -88,7 +88,7 @@ JobRequeue=1
 KillWait=30
 MinJobAge=600
 SlurmdTimeout=60
-NodeName=$node CPUs=$cpus RealMemory=$mem_mb State=UNKNOWN
+NodeName=$node NodeAddr=127.0.0.1 CPUs=$cpus RealMemory=$mem_mb State=UNKNOWN
 PartitionName=debug Nodes=ALL Default=YES MaxTime=INFINITE State=UP
 CONF_END
   if [ -f "$CONF" ] && cmp -s "$CONF" "$CONF.new"; then
