@@ -139,7 +139,7 @@ def shared_gpu(args: list[str], conf_dir: Path) -> contextlib.AbstractContextMan
     except Exception:  # noqa: BLE001  (a composition error is reported by Hydra itself)
         return contextlib.nullcontext()
     device = str(cfg.device)
-    wants_gpu = device.startswith("cuda") or (device == "auto" and mps._has_cuda())
+    wants_gpu = device.startswith("cuda") or (device == "auto" and mps.has_cuda())
     folder = Path(tempfile.gettempdir()) / f"td3x-mps-{os.getpid()}"  # short: the pipe is a Unix socket path
     decision = mps.decide(parallel, wants_gpu, bool(cfg.mps), folder)
     say = (lambda line: print(line, file=sys.stderr)) if wants_gpu and parallel > 1 else (lambda line: None)

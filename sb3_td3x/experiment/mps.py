@@ -34,7 +34,7 @@ PIPE_ENV, LOG_ENV = "CUDA_MPS_PIPE_DIRECTORY", "CUDA_MPS_LOG_DIRECTORY"
 DEFAULT_PIPE = "/tmp/nvidia-mps"  # where the driver's clients look when CUDA_MPS_PIPE_DIRECTORY is unset
 
 
-def _has_cuda() -> bool:
+def has_cuda() -> bool:
     try:
         import torch
 
@@ -64,7 +64,7 @@ def decide(
     wants_gpu: bool,
     enabled: bool,
     folder: Path,
-    has_cuda: Callable[[], bool] | None = None,
+    cuda_check: Callable[[], bool] | None = None,
     control: str | None = None,
 ) -> MpsDecision:
     """What to do about MPS for ``processes`` processes that will use the GPU (``wants_gpu``: their device resolves to
@@ -75,7 +75,7 @@ def decide(
         return MpsDecision(False, None, "the processes run on the CPU")
     if processes < 2:
         return MpsDecision(False, None, "one process at a time: nothing to share")
-    if not (has_cuda or _has_cuda)():
+    if not (cuda_check or has_cuda)():
         return MpsDecision(False, None, "no CUDA GPU on this machine")
     control = control if control is not None else shutil.which(CONTROL)
     if control is None:

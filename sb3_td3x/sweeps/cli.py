@@ -251,7 +251,7 @@ def _shared_gpu(args: argparse.Namespace, cluster: str, config_dir: Path, overri
         return contextlib.nullcontext()
     cfg = compose_config(overrides, config_dir)  # a trial's config, less its searched values (check_composes ran)
     device = str(cfg.device)
-    wants_gpu = device.startswith("cuda") or (device == "auto" and mps._has_cuda())
+    wants_gpu = device.startswith("cuda") or (device == "auto" and mps.has_cuda())
     if not wants_gpu:
         return contextlib.nullcontext()
     folder = Path(tempfile.gettempdir()) / f"td3x-mps-{os.getpid()}"

@@ -48,7 +48,7 @@ def fake_control(tmp_path, monkeypatch):
 def test_a_daemon_is_started_for_the_processes_and_stopped_at_the_end(fake_control, tmp_path):
     script, log = fake_control
     folder = tmp_path / "mps"
-    decision = mps.decide(3, wants_gpu=True, enabled=True, folder=folder, has_cuda=lambda: True)
+    decision = mps.decide(3, wants_gpu=True, enabled=True, folder=folder, cuda_check=lambda: True)
     assert decision.start and decision.pipe == folder / "pipe"
     said = []
     with mps.SharedGpu(decision, folder, say=said.append):
@@ -66,7 +66,7 @@ def test_a_running_daemon_is_used_and_left_running(fake_control, tmp_path, monke
     theirs.mkdir()
     (theirs / "control").touch()
     monkeypatch.setenv(mps.PIPE_ENV, str(theirs))
-    decision = mps.decide(3, wants_gpu=True, enabled=True, folder=tmp_path / "mps", has_cuda=lambda: True)
+    decision = mps.decide(3, wants_gpu=True, enabled=True, folder=tmp_path / "mps", cuda_check=lambda: True)
     assert not decision.start and decision.pipe == theirs and "already runs" in decision.reason
     with mps.SharedGpu(decision, tmp_path / "mps", say=lambda line: None):
         pass
@@ -76,7 +76,7 @@ def test_a_running_daemon_is_used_and_left_running(fake_control, tmp_path, monke
 
 def test_without_the_binary_the_processes_share_by_time_slices(tmp_path, monkeypatch):
     monkeypatch.setenv("PATH", str(tmp_path))
-    decision = mps.decide(3, wants_gpu=True, enabled=True, folder=tmp_path, has_cuda=lambda: True)
+    decision = mps.decide(3, wants_gpu=True, enabled=True, folder=tmp_path, cuda_check=lambda: True)
     assert not decision.start and decision.pipe is None and "is not installed" in decision.reason
 
 
@@ -94,7 +94,7 @@ def test_a_multirun_on_this_machine_decides_from_its_command_line(fake_control, 
     with shared_gpu(["-m", "seed=0,1", "hydra/launcher=submitit_slurm"], CONF):  # the cluster decides
         pass
     assert not log.exists() and capsys.readouterr().err == ""
-    monkeypatch.setattr(mps, "_has_cuda", lambda: True)  # as on a GPU machine
+    monkeypatch.setattr(mps, "has_cuda", lambda: True)  # as on a GPU machine
     with shared_gpu(["-m", "seed=0,1,2", "hydra.launcher.n_jobs=1"], CONF):  # one job at a time
         pass
     assert not log.exists() and capsys.readouterr().err == ""  # nothing to share, nothing to say
@@ -114,7 +114,7 @@ def test_local_sweep_workers_share_the_gpu_only_while_wait_waits(fake_control, m
     from sb3_td3x.sweeps.cli import _shared_gpu
 
     script, log = fake_control
-    monkeypatch.setattr(mps, "_has_cuda", lambda: True)
+    monkeypatch.setattr(mps, "has_cuda", lambda: True)
     args = argparse.Namespace(workers=2, wait=False)
     with _shared_gpu(args, "local", CONF, ["env=pendulum"]):  # without --wait nothing would stop a daemon
         pass
