@@ -482,14 +482,12 @@ def shared_gpu(mode: str, n_seeds: int):
     """An MPS control daemon for the processes of a ``+mps`` measurement (started before them, stopped after),
     else nothing."""
     import contextlib
-    import tempfile
 
     from sb3_td3x.experiment import mps
 
-    if not mode.endswith(MPS_SUFFIX) or n_seeds < 2:
+    if not mode.endswith(MPS_SUFFIX):
         return contextlib.nullcontext()
-    folder = Path(tempfile.gettempdir()) / f"td3x-mps-bench-{os.getpid()}"
-    return mps.SharedGpu(mps.decide(n_seeds, True, True, folder), folder)
+    return mps.around_launch(n_seeds, "cuda", True)
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -11,7 +11,6 @@ import math
 import os
 import re
 import sys
-import tempfile
 from pathlib import Path
 
 from hydra.core.hydra_config import HydraConfig
@@ -133,19 +132,12 @@ def shared_gpu(args: list[str], conf_dir: Path) -> contextlib.AbstractContextMan
     parallel = combinations
     if launcher != "submitit_local":
         n_jobs = n_jobs if n_jobs is not None else (-1 if launcher == "joblib_cores" else 10)  # the plugin's default: 10
-        parallel = min(combinations, n_jobs if n_jobs > 0 else max(1, available_cores() + 1 + n_jobs))
+        parallel = min(combinations, jobs_at_once(n_jobs, available_cores()))
     try:
         cfg = compose_config(plain, conf_dir)
     except Exception:  # noqa: BLE001  (a composition error is reported by Hydra itself)
         return contextlib.nullcontext()
-    device = str(cfg.device)
-    wants_gpu = device.startswith("cuda") or (device == "auto" and mps.has_cuda())
-    folder = Path(tempfile.gettempdir()) / f"td3x-mps-{os.getpid()}"  # short: the pipe is a Unix socket path
-    decision = mps.decide(parallel, wants_gpu, bool(cfg.mps), folder)
-    say = (lambda line: print(line, file=sys.stderr)) if wants_gpu and parallel > 1 else (lambda line: None)
-    if wants_gpu and parallel > 1 and decision.pipe is None:
-        say(f"CUDA MPS: not used: {decision.reason}")
-    return mps.SharedGpu(decision, folder, say=say)
+    return mps.around_launch(parallel, str(cfg.device), bool(cfg.mps), say=lambda line: print(line, file=sys.stderr))
 
 
 def available_cores() -> int:
@@ -185,8 +177,12 @@ def threads_per_job(n_jobs: int | None, cores: int) -> int | None:
     """
     if n_jobs is None:
         return None
-    parallel = n_jobs if n_jobs > 0 else max(1, cores + 1 + n_jobs)
-    return max(1, cores // parallel)
+    return max(1, cores // jobs_at_once(n_jobs, cores))
+
+
+def jobs_at_once(n_jobs: int, cores: int) -> int:
+    """How many jobs joblib runs side by side with ``n_jobs`` (-1 one per core, -2 all cores but one, ...)."""
+    return n_jobs if n_jobs > 0 else max(1, cores + 1 + n_jobs)
 
 
 def main(cfg: DictConfig) -> float:

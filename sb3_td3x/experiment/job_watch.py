@@ -18,65 +18,65 @@ import subprocess
 import time
 from typing import Any
 
+try:
+    from submitit.slurm.slurm import SlurmInfoWatcher, SlurmJob
+except ImportError:  # without the cluster extra: nothing to follow
+    SlurmInfoWatcher = SlurmJob = None  # type: ignore[assignment,misc]
+
 log = logging.getLogger(__name__)
 
 _FIELD = re.compile(r"(\w+)=(\S*)")
 
 
-def _watcher_class() -> type:
-    from submitit.slurm.slurm import SlurmInfoWatcher
+class SlurmWatcher(SlurmInfoWatcher or object):  # type: ignore[misc]
+    """submitit's SLURM watcher, with ``scontrol`` where ``sacct`` does not answer."""
 
-    class SlurmWatcher(SlurmInfoWatcher):
-        """submitit's SLURM watcher, with ``scontrol`` where ``sacct`` does not answer."""
+    def __init__(self, delay_s: int = 60) -> None:
+        super().__init__(delay_s=delay_s)
+        self.accounting: bool | None = None  # unknown until sacct first answers or fails
 
-        def __init__(self, delay_s: int = 60) -> None:
-            super().__init__(delay_s=delay_s)
-            self.accounting: bool | None = None  # unknown until sacct first answers or fails
+    def update(self) -> None:
+        to_check = {job_id.split("_")[0] for job_id in self._registered - self._finished}
+        if not to_check:
+            return
+        self._num_calls += 1
+        if self.accounting is not False:
+            self._ask_sacct(to_check)
+        if self.accounting is False:
+            for job_id in sorted(to_check):
+                self._ask_scontrol(job_id)
+        self._last_status_check = time.time()
+        for job_id in self._registered - self._finished:
+            if self.is_done(job_id, mode="cache"):
+                self._finished.add(job_id)
 
-        def update(self) -> None:
-            to_check = {job_id.split("_")[0] for job_id in self._registered - self._finished}
-            if not to_check:
-                return
-            self._num_calls += 1
-            if self.accounting is not False:
-                self._ask_sacct(to_check)
-            if self.accounting is False:
-                for job_id in sorted(to_check):
-                    self._ask_scontrol(job_id)
-            self._last_status_check = time.time()
-            for job_id in self._registered - self._finished:
-                if self.is_done(job_id, mode="cache"):
-                    self._finished.add(job_id)
+    def _ask_sacct(self, to_check: set[str]) -> None:
+        command = self._make_command()
+        if command is None:
+            return
+        try:
+            done = subprocess.run(command, capture_output=True, text=True, timeout=60)
+        except (OSError, subprocess.SubprocessError) as error:
+            done = subprocess.CompletedProcess(command, 1, "", str(error))
+        if done.returncode == 0:
+            self.accounting = True
+            self._info_dict.update(self.read_info(done.stdout))
+            return
+        if self.accounting is None:  # never answered: a cluster without accounting, or no sacct at all
+            self.accounting = False
+            said = " ".join((done.stderr or done.stdout or f"exit status {done.returncode}").split())
+            log.info("sacct does not answer here (%s): following the jobs with scontrol instead", said)
+        else:  # it answered before: a passing fault of the database
+            log.debug("sacct failed this once: %s", done.stderr)
 
-        def _ask_sacct(self, to_check: set[str]) -> None:
-            command = self._make_command()
-            if command is None:
-                return
-            try:
-                done = subprocess.run(command, capture_output=True, text=True, timeout=60)
-            except (OSError, subprocess.SubprocessError) as error:
-                done = subprocess.CompletedProcess(command, 1, "", str(error))
-            if done.returncode == 0:
-                self.accounting = True
-                self._info_dict.update(self.read_info(done.stdout))
-                return
-            if self.accounting is None:  # never answered: a cluster without accounting, or no sacct at all
-                self.accounting = False
-                said = " ".join((done.stderr or done.stdout or f"exit status {done.returncode}").split())
-                log.info("sacct does not answer here (%s): following the jobs with scontrol instead", said)
-            else:  # it answered before: a passing fault of the database
-                log.debug("sacct failed this once: %s", done.stderr)
-
-        def _ask_scontrol(self, job_id: str) -> None:
-            try:
-                done = subprocess.run(["scontrol", "-o", "show", "job", job_id], capture_output=True, text=True, timeout=60)
-            except (OSError, subprocess.SubprocessError):
-                return
-            if done.returncode != 0:  # gone from the controller (older than MinJobAge): keep what was last seen
-                return
-            self._info_dict.update(read_scontrol(done.stdout))
-
-    return SlurmWatcher
+    def _ask_scontrol(self, job_id: str) -> None:
+        try:
+            done = subprocess.run(["scontrol", "-o", "show", "job", job_id], capture_output=True, text=True, timeout=60)
+        except (OSError, subprocess.SubprocessError):
+            return
+        if done.returncode != 0:  # gone from the controller (older than MinJobAge): keep what was last seen
+            return
+        self._info_dict.update(read_scontrol(done.stdout))
 
 
 def read_scontrol(text: str) -> dict[str, dict[str, str]]:
@@ -102,13 +102,10 @@ def read_scontrol(text: str) -> dict[str, dict[str, str]]:
 def install() -> Any | None:
     """Make submitit follow this process's SLURM jobs with :class:`SlurmWatcher`; returns it (None without
     submitit). Idempotent."""
-    try:
-        from submitit.slurm.slurm import SlurmJob
-    except ImportError:
+    if SlurmJob is None:
         return None
-    watcher_class = _watcher_class()
-    if type(SlurmJob.watcher).__name__ != watcher_class.__name__:
-        SlurmJob.watcher = watcher_class(delay_s=60)
+    if not isinstance(SlurmJob.watcher, SlurmWatcher):
+        SlurmJob.watcher = SlurmWatcher(delay_s=60)
     return SlurmJob.watcher
 
 

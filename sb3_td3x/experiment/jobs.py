@@ -152,8 +152,3 @@ def after_stop(exit_code: int, message: str) -> None:
         print(message, file=sys.stderr, flush=True)
         raise SystemExit(exit_code)
 
-
-def reset() -> None:
-    """Forget the signals received (tests, and a process that runs several jobs' functions one after another)."""
-    global _stops
-    _stops = _Stops()

@@ -19,10 +19,12 @@ local workers inside it (docs/cluster.md).
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import shutil
 import subprocess
+import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -90,7 +92,9 @@ class SharedGpu:
     """A context manager around the launch of several GPU processes: MPS as :func:`decide` says, stopped at the end
     when this started it. The processes inherit ``CUDA_MPS_PIPE_DIRECTORY`` from this process's environment."""
 
-    def __init__(self, decision: MpsDecision, folder: Path, control: str | None = None, say: Callable[[str], None] = print) -> None:
+    def __init__(
+        self, decision: MpsDecision, folder: Path, control: str | None = None, say: Callable[[str], None] = print
+    ) -> None:
         self.decision = decision
         self.folder = folder
         self.control = control or shutil.which(CONTROL) or CONTROL
@@ -109,7 +113,8 @@ class SharedGpu:
             env = {**os.environ, PIPE_ENV: str(pipe), LOG_ENV: str(self.folder / "log")}
             done = subprocess.run([self.control, "-d"], env=env, capture_output=True, text=True, timeout=60)
             if done.returncode != 0:
-                self.say(f"CUDA MPS: {CONTROL} -d failed ({' '.join(done.stderr.split()) or done.returncode}): the processes share the GPU by time slices")
+                why = " ".join(done.stderr.split()) or done.returncode
+                self.say(f"CUDA MPS: {CONTROL} -d failed ({why}): the processes share the GPU by time slices")
                 return self
             self._started = True
         for name, value in ((PIPE_ENV, str(pipe)), (LOG_ENV, str(self.folder / "log") if decision.start else None)):
@@ -131,7 +136,29 @@ class SharedGpu:
             try:
                 subprocess.run([self.control], input="quit\n", env=env, capture_output=True, text=True, timeout=60)
             except (OSError, subprocess.SubprocessError) as error:
-                log.warning("CUDA MPS: stopping the daemon failed: %s; stop it with: echo quit | %s=%s %s", error, PIPE_ENV, self.decision.pipe, CONTROL)
+                how = f"echo quit | {PIPE_ENV}={self.decision.pipe} {CONTROL}"
+                log.warning("CUDA MPS: stopping the daemon failed: %s; stop it with: %s", error, how)
             else:
                 shutil.rmtree(self.folder, ignore_errors=True)  # the launch's own pipe and log folders
             self._started = False
+
+
+def around_launch(
+    processes: int, device: str, enabled: bool, say: Callable[[str], None] = print, unstoppable: str | None = None
+) -> contextlib.AbstractContextManager:
+    """What a launch of ``processes`` processes on ``device`` (a config's ``device``: ``auto`` is CUDA where torch
+    sees a GPU) runs inside: :class:`SharedGpu` as :func:`decide` says, with its pipe folder of the launch's own
+    (``/tmp/td3x-mps-<pid>``: short, the pipe is a Unix socket path), or nothing where the processes do not share a
+    GPU. One line (``say``) tells what it did, or why not. ``unstoppable``: why nothing would stop a daemon started
+    here (a launch that does not wait for its processes): then none is started, and the line says so."""
+    wants_gpu = device.startswith("cuda") or (device == "auto" and has_cuda())
+    if not wants_gpu or processes < 2:
+        return contextlib.nullcontext()
+    folder = Path(tempfile.gettempdir()) / f"td3x-mps-{os.getpid()}"
+    decision = decide(processes, wants_gpu, enabled, folder)
+    if decision.start and unstoppable is not None:
+        say(f"CUDA MPS: not started: {unstoppable}; start one with {CONTROL} -d")
+        return contextlib.nullcontext()
+    if decision.pipe is None:
+        say(f"CUDA MPS: not used: {decision.reason}")
+    return SharedGpu(decision, folder, say=say)

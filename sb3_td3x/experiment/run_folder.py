@@ -34,7 +34,14 @@ from omegaconf import DictConfig, OmegaConf
 from sb3_td3x.common.redaction import redact
 from sb3_td3x.experiment import jobs
 from sb3_td3x.experiment.callbacks import EVALUATIONS_CSV, write_atomically
-from sb3_td3x.experiment.checkpoints import LAST, META_FILE, checkpoint_dir, find_checkpoint, resume_checkpoint
+from sb3_td3x.experiment.checkpoints import (
+    LAST,
+    META_FILE,
+    checkpoint_dir,
+    find_checkpoint,
+    resume_checkpoint,
+    seed_folders,
+)
 from sb3_td3x.experiment.errors import ConfigError
 from sb3_td3x.experiment.lock import RunFolderLock
 
@@ -194,6 +201,18 @@ def config_for_resume(cfg: DictConfig, overrides: list[str]) -> DictConfig:
     return resumed
 
 
+def seed_run_dirs(cfg: DictConfig) -> list[Path]:
+    """The run folder of each of ``cfg.seeds``: ``cfg.seed_run_dirs`` when set (``run.py``, or the saved config of
+    the seed folder ``cfg.resume``), else ``<run_dir>/seed<s>``."""
+    if cfg.seed_run_dirs is not None:
+        return [Path(d) for d in cfg.seed_run_dirs]
+    if cfg.resume is not None and (Path(cfg.resume) / CONFIG_FILE).is_file():
+        saved = OmegaConf.load(Path(cfg.resume) / CONFIG_FILE).get("seed_run_dirs")
+        if saved is not None and len(saved) == len(cfg.seeds):
+            return [Path(d) for d in saved]
+    return seed_folders(cfg.run_dir, cfg.seeds)
+
+
 # The owner ------------------------------------------------------------------------------------------------------------
 @dataclass
 class Start:
@@ -214,8 +233,6 @@ def where_to_start(cfg: DictConfig) -> Start:
     if found is None:
         return Start(run_dir, None, NEW)
     if cfg.seeds is not None:  # a batch: its folders are the seeds' (seed_run_dirs); any checkpoint resumes the batch
-        from sb3_td3x.experiment.runner import seed_run_dirs
-
         dirs = seed_run_dirs(OmegaConf.merge(cfg, {"run_dir": str(found)}))
         has_checkpoint = any(find_checkpoint(checkpoint_dir(d, LAST)) is not None for d in dirs)
     else:

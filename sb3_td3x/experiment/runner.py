@@ -39,7 +39,6 @@ from sb3_td3x.experiment.checkpoints import (
     find_checkpoint,
     load_checkpoint,
     load_resumable,
-    seed_folders,
 )
 from sb3_td3x.experiment.envs import make_eval_env, make_train_env
 from sb3_td3x.experiment.errors import ConfigError, RunFilesNotWritten, TrainingDiverged, TrainingInterrupted
@@ -49,11 +48,12 @@ from sb3_td3x.experiment.resume import check_resume, saved_config
 from sb3_td3x.experiment.run_folder import (
     CONFIG_FILE,
     NEW,
+    REQUEUED,
     RESTARTED,
-    RESUMED,
     RUN_LOG,
     RunFolder,
     checkpoint_step,
+    seed_run_dirs,
     where_to_start,
 )
 from sb3_td3x.experiment.schemas import check_config, public_config
@@ -98,7 +98,7 @@ def run_experiment(
         cfg.run_dir = str(cfg.resume)
     OmegaConf.resolve(cfg)  # pins ${now:...} and the env defaults once
     start = where_to_start(cfg)  # a requeued job continues its own folder (sb3_td3x.experiment.run_folder)
-    if start.how != NEW and start.how != RESUMED:
+    if start.how in (REQUEUED, RESTARTED):
         log.info(
             "This job (SLURM job %s) started again after a requeue: %s in %s",
             jobs.current_job().name,  # type: ignore[union-attr]
@@ -385,18 +385,6 @@ def _close(run: _Run) -> None:
 
 
 # Many seeds in one process ------------------------------------------------------------------------------------------
-def seed_run_dirs(cfg: DictConfig) -> list[Path]:
-    """The run folder of each of ``cfg.seeds``: ``cfg.seed_run_dirs`` when set (``run.py``, or the saved config of
-    the seed folder ``cfg.resume``), else ``<run_dir>/seed<s>``."""
-    if cfg.seed_run_dirs is not None:
-        return [Path(d) for d in cfg.seed_run_dirs]
-    if cfg.resume is not None and (Path(cfg.resume) / CONFIG_FILE).is_file():
-        saved = OmegaConf.load(Path(cfg.resume) / CONFIG_FILE).get("seed_run_dirs")
-        if saved is not None and len(saved) == len(cfg.seeds):
-            return [Path(d) for d in saved]
-    return seed_folders(cfg.run_dir, cfg.seeds)
-
-
 class _SeedReports:
     """The evaluations of a batch's seeds, step by step: ``report`` gets their aggregate once every seed still
     training has evaluated at a step. When ``report`` raises, every seed is asked to stop: each checkpoints at its

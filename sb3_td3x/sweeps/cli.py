@@ -242,26 +242,15 @@ def _shared_gpu(args: argparse.Namespace, cluster: str, config_dir: Path, overri
     """CUDA MPS for local worker jobs on this machine's GPU (:mod:`sb3_td3x.experiment.mps`), for as long as
     ``--wait`` waits for them; without ``--wait`` nobody would stop a daemon, so one line says how to start one."""
     import contextlib
-    import tempfile
 
     from sb3_td3x.experiment import mps
     from sb3_td3x.experiment.schemas import compose_config
 
-    if cluster != "local" or args.workers < 2:
+    if cluster != "local":
         return contextlib.nullcontext()
     cfg = compose_config(overrides, config_dir)  # a trial's config, less its searched values (check_composes ran)
-    device = str(cfg.device)
-    wants_gpu = device.startswith("cuda") or (device == "auto" and mps.has_cuda())
-    if not wants_gpu:
-        return contextlib.nullcontext()
-    folder = Path(tempfile.gettempdir()) / f"td3x-mps-{os.getpid()}"
-    decision = mps.decide(args.workers, wants_gpu, bool(cfg.mps), folder)
-    if decision.start and not args.wait:
-        print(f"CUDA MPS: not started: without --wait nothing would stop it; start one with {mps.CONTROL} -d, or pass --wait")
-        return contextlib.nullcontext()
-    if decision.pipe is None:
-        print(f"CUDA MPS: not used: {decision.reason}")
-    return mps.SharedGpu(decision, folder)
+    unstoppable = None if args.wait else "without --wait nothing would stop it (pass --wait)"
+    return mps.around_launch(args.workers, str(cfg.device), bool(cfg.mps), unstoppable=unstoppable)
 
 
 def _password_to_environment(storage_url: str) -> str:

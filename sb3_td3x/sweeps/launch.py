@@ -24,12 +24,12 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from sb3_td3x.sweeps.errors import SweepSpecError
+from sb3_td3x.sweeps.spec import check_readable_file
 
 try:
     from submitit.helpers import Checkpointable
 except ImportError:  # without the cluster extra: load_launcher says what to install
     Checkpointable = object  # type: ignore[assignment,misc]
-from sb3_td3x.sweeps.spec import check_readable_file
 
 _LAUNCHERS = {
     "hydra_plugins.hydra_submitit_launcher.submitit_launcher.SlurmLauncher": "slurm",
