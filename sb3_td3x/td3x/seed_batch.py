@@ -42,6 +42,7 @@ from sb3_td3x.common.buffers import TensorReplayBuffer
 from sb3_td3x.common.random_streams import RandomStreams, detached_streams
 from sb3_td3x.td3x.hooks import changed_hooks
 from sb3_td3x.td3x.td3x import TD3X
+from sb3_td3x.td3x.update_paths.compiled import decide_compile
 from sb3_td3x.td3x.update_paths.mlp import MlpUpdate
 
 log = logging.getLogger(__name__)
@@ -259,8 +260,8 @@ class SeedBatch:
         totals = self._per_seed_values("total_timesteps", total_timesteps)
         resets = self._per_seed_values("reset_num_timesteps", reset_num_timesteps)
         self.errors, self._on_error = {}, on_error
-        self._choose_update()
         if len(self.models) == 1:  # one seed: its own learn()
+            self._choose_update()
             try:
                 with self.seed_context(0) as model:
                     model.learn(totals[0], callbacks[0], log_interval, tb_log_name or type(model).__name__, resets[0], progress_bar)
@@ -273,6 +274,7 @@ class SeedBatch:
             self._start(i, totals[i], callbacks[i], resets[i], tb_log_name, progress_bar, log_interval)
             for i in range(len(self.models))
         ]
+        self._choose_update()  # after _setup_learn: auto compilation depends on the run's length
         active = [run for run in runs if not run.finished]
         while active:
             self._train([(run, steps) for run in active if (steps := self._collect(run, log_interval, keep_going))], keep_going)
@@ -345,13 +347,19 @@ class SeedBatch:
 
     def _choose_update(self) -> None:
         """The update of this ``learn()`` call: shared where :meth:`why_not_stacked` allows it."""
+        for model in self.models:
+            if isinstance(model, TD3X):
+                decide_compile(model)  # each seed decides as its lone run would; why_not_stacked needs them equal
         reason = self.why_not_stacked()
         self._update = None
         if reason is None:
             first = self.models[0]
-            self._update = MlpUpdate(self.models, compile=first.compile_update, around=self._globals_for)  # type: ignore[arg-type]
+            self._update = MlpUpdate(self.models, compile=first.update_compiled, around=self._globals_for)  # type: ignore[arg-type]
             self.update_path = SEED_STACKED
-            self.update_reason = f"MlpUpdate of the {len(self.models)} seeds' models (each seed's lone update is MlpUpdate)"
+            compiled = f"; {first.compile_reason}" if first.update_compiled else ""  # type: ignore[attr-defined]
+            self.update_reason = (
+                f"MlpUpdate of the {len(self.models)} seeds' models (each seed's lone update is MlpUpdate){compiled}"
+            )
         else:
             self.update_path, self.update_reason = PER_SEED, f"each seed trains alone: {reason}"
         self._announced = set()

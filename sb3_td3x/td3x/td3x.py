@@ -26,6 +26,7 @@ from sb3_td3x.common.random_streams import RandomStreams
 from sb3_td3x.td3x.hooks import HOOK_NAMES
 from sb3_td3x.td3x.policies import CnnPolicy, MlpPolicy, MultiInputPolicy, TD3XPolicy
 from sb3_td3x.td3x.update_paths.choose import AUTO_GRAPHS, choose_update, why_not_cuda_graph
+from sb3_td3x.td3x.update_paths.compiled import compile_watch
 from sb3_td3x.td3x.update_paths.exploration import choose_exploration_actor
 from sb3_td3x.td3x.update_paths.precision import autocast_context, bf16_on_cpu_warning
 
@@ -132,11 +133,17 @@ class TD3X(OffPolicyAlgorithm):
         with fp32 weights, gradients, optimizer states and losses: ``MlpUpdate``'s products where it applies, the
         forward passes under bf16 autocast otherwise. A CPU without AVX512-BF16 or AMX (an AVX2 one) runs bf16 products
         in software, tens of times slower than fp32: TD3X warns there
-    :param compile_update: opt-in: ``torch.compile`` the update. With ``mlp_update`` applicable (fp32 or bf16), the
-        hand-written gradients of :class:`~sb3_td3x.td3x.update_paths.mlp.MlpUpdate` are compiled (one graph for the
-        critics', one for the actor's); otherwise steps 5 to 15 are, with the gradients from ``torch.func`` and
-        Adam's update rule on the optimizers' own states
-        (:class:`~sb3_td3x.td3x.update_paths.compiled.FunctionalCompiledUpdate`). The first steps pay the compilation
+    :param compile_update: ``torch.compile`` the update. ``None`` (auto, the default) compiles where it wins and
+        computes what the code says (:func:`~sb3_td3x.td3x.update_paths.compiled.why_not_compile`): on a CPU, in
+        fp32, :class:`~sb3_td3x.td3x.update_paths.mlp.MlpUpdate`'s two gradient functions (so only SB3's ReLU MLP
+        actor and critics with every hook as written: a user's change always runs uncompiled, as written), for a run
+        of at least :attr:`compile_auto_min_steps` training steps (its target less ``learning_starts``), which pays
+        back the first steps' compilation; otherwise the update is what ``False`` gives. ``True`` compiles any update:
+        ``MlpUpdate`` where it applies, otherwise steps 5 to 15 with the gradients from ``torch.func`` and Adam's
+        update rule on the optimizers' own states
+        (:class:`~sb3_td3x.td3x.update_paths.compiled.FunctionalCompiledUpdate`), or ``update_from_batch`` as it is.
+        ``update_compiled`` says whether the update is compiled and ``compile_reason`` why, decided at the first
+        ``train()`` of each ``learn()``
     :param cuda_graph: capture the whole gradient step, sampling included, in CUDA graphs and replay them (no
         kernel-launch or Python overhead per step). ``None`` (auto, the default) does where the update is provably
         stock and capturable (:func:`~sb3_td3x.td3x.update_paths.cuda_graph.why_not_cuda_graph`: a CUDA device, the
@@ -167,6 +174,10 @@ class TD3X(OffPolicyAlgorithm):
         "MultiInputPolicy": MultiInputPolicy,
     }
     policy: TD3XPolicy
+    #: ``compile_update=None`` (auto) compiles a run of at least this many training steps (``total_timesteps`` less
+    #: ``learning_starts``): on the CPUs measured the compiled update saves 0.2 to 0.3 ms per step and its
+    #: compilation costs 3 to 16 s (docs/performance.md).
+    compile_auto_min_steps: ClassVar[int] = 100_000
 
     def __init__(
         self,
@@ -198,7 +209,7 @@ class TD3X(OffPolicyAlgorithm):
         target_policy_smoothing: bool = True,
         clipped_double_q: bool = True,
         bf16: bool = False,
-        compile_update: bool = False,
+        compile_update: bool | None = None,
         cuda_graph: bool | None = None,
         mlp_update: bool = True,
         flush_denormals: bool = True,
@@ -219,7 +230,9 @@ class TD3X(OffPolicyAlgorithm):
         self.target_policy_smoothing = target_policy_smoothing
         self.clipped_double_q = clipped_double_q
         self.bf16 = bf16
-        self.compile_update = compile_update
+        self.compile_update = compile_update  # what was asked: None (auto), True or False; saved with the model
+        self.update_compiled = False  # whether the update is compiled: decided at the first train() of a learn()
+        self.compile_reason: str | None = None
         self.cuda_graph_request = cuda_graph  # what was asked: None (auto), True or False; saved with the model
         self.cuda_graph = False  # whether the update runs in CUDA graphs: decided by _setup_model
         self.mlp_update = mlp_update
@@ -247,7 +260,7 @@ class TD3X(OffPolicyAlgorithm):
             return
         if self.device.type != "cuda":
             raise ValueError(f"cuda_graph=True needs a CUDA device, got device={self.device}; use device='cuda'.")
-        if self.compile_update:
+        if self.compile_update is True:
             raise ValueError("cuda_graph=True and compile_update=True are exclusive: choose one.")
 
     @classmethod
@@ -321,6 +334,8 @@ class TD3X(OffPolicyAlgorithm):
         for name in ("target_policy_noise", "target_noise_clip"):
             if not is_number(values[name]) or not (math.isfinite(values[name]) and values[name] >= 0):
                 fail(name, "a finite float >= 0 (use target_policy_smoothing=False to switch smoothing off)")
+        if values["compile_update"] is not None and not isinstance(values["compile_update"], (bool, np.bool_)):
+            fail("compile_update", "None (auto: compiled where it wins and the update is stock), True or False")
         if values["cuda_graph"] is not None and not isinstance(values["cuda_graph"], (bool, np.bool_)):
             fail("cuda_graph", "None (auto: CUDA graphs where the update is provably stock), True or False")
         return problems
@@ -493,7 +508,8 @@ class TD3X(OffPolicyAlgorithm):
         # VecNormalize wrapper is replaced after the choice (a cheap check per train() call; changes inside a module
         # after the first train() are not seen: set them before it).
         watched = (self.actor, self.critic, self.actor_target, self.critic_target, self._instance_hooks(),
-                   self.actor.optimizer, self.critic.optimizer, self.replay_buffer, self._vec_normalize_env)  # fmt: skip
+                   self.actor.optimizer, self.critic.optimizer, self.replay_buffer, self._vec_normalize_env,
+                   compile_watch(self))  # fmt: skip
         chosen_for = self.__dict__.get("_step_fn_for")  # None for a step set from outside (tests): kept
         if self._step_fn is None or (chosen_for is not None and chosen_for != watched):
             choice = choose_update(self)
@@ -503,6 +519,7 @@ class TD3X(OffPolicyAlgorithm):
             self.logger.info(
                 f"update: {self.update_path} ({self.update_reason}); "
                 f"exploration: {exploration} ({exploration_reason})"
+                + ("" if self.update_compiled or self.compile_update is not None else f"; {self.compile_reason}")
             )
         return self._step_fn
 
@@ -809,6 +826,8 @@ class TD3X(OffPolicyAlgorithm):
             "update_reason",
             "cuda_graph",  # decided again when loaded, from cuda_graph_request (saved) and this machine
             "cuda_graph_reason",
+            "update_compiled",  # decided again at the first train(), from compile_update (saved)
+            "compile_reason",
             "exploration_path",
             "_actor_params",
             "_actor_target_params",

@@ -29,6 +29,12 @@ class HuberTD3X(TD3X):
         return loss, {"critic_loss": loss.detach()}
 
 
+class LongRunTD3X(TD3X):
+    """Every run counts as long: compile_update=None (auto) compiles MlpUpdate, as on a long run on a CPU."""
+
+    compile_auto_min_steps = 0
+
+
 class GlobalNoise(NormalActionNoise):
     """A user's action noise, drawing from numpy's global generator itself: the batch installs the seed's streams."""
 
@@ -83,8 +89,9 @@ def assert_same_runs(batch, lone, exact=True):
         (TD3X, NormalActionNoise, "seed_stacked_mlp", False),
         (HuberTD3X, NormalActionNoise, "per_seed", True),
         (TD3X, GlobalNoise, "seed_stacked_mlp", True),
+        (LongRunTD3X, NormalActionNoise, "seed_stacked_mlp", True),
     ],
-    ids=["default", "overridden-critic_loss", "noise-from-numpy-global"],
+    ids=["default", "overridden-critic_loss", "noise-from-numpy-global", "compiled-long-run"],
 )
 def test_a_batch_computes_the_lone_runs_bit_for_bit(cls, noise, path, swaps):
     make = factory(cls, noise)
@@ -92,6 +99,9 @@ def test_a_batch_computes_the_lone_runs_bit_for_bit(cls, noise, path, swaps):
     caller = np.random.get_state()
     batch = SeedBatch(make, SEEDS).learn(STEPS)
     assert batch.update_path == path
+    compiled = cls is LongRunTD3X  # the long run's default: each lone run and the batch compile MlpUpdate
+    assert all(m.update_compiled == compiled for m in [*lone, *batch])
+    assert ("compile_update=None (auto): a run of 350 training steps" in batch.update_reason) == compiled
     if cls is HuberTD3X:
         assert "critic_loss overridden by HuberTD3X" in batch.update_reason
     # The default model's rounds swap no global state; a user's class or noise runs with the seed's streams installed.

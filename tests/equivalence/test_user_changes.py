@@ -320,13 +320,28 @@ def assert_collection_is_sb3s(model: TD3X) -> None:
 # (train_updates), learn() to 1.2e-4 after 200, where the AMD EPYCs gave < 1e-5; a dropped override is 0.49 away.
 ROUNDING_AMPLIFIED = {"update_critic_target-overridden": {"rtol": 1e-3, "atol": 1e-3}}
 
+# Changes MlpUpdate calls as written (step 4's sampling, step 13's delay, steps 14 and 15's target updates, and
+# collection's ``policy._predict``, outside the update): a long run compiles MlpUpdate's gradient functions around
+# them, and they run uncompiled, as written.
+COMPILED_AROUND = {
+    "policy-_predict-overridden", "sample_batch-overridden", "should_update_actor-overridden",
+    "update_actor_target-overridden", "update_critic_target-overridden",
+}  # fmt: skip
+
 
 @pytest.mark.parametrize("name", list(CASES))
-def test_a_users_change_is_trained_as_written(name):
+def test_a_users_change_is_trained_as_written(name, monkeypatch):
+    # Every run counts as long: compile_update=None (auto) compiles MlpUpdate's gradient functions where MlpUpdate
+    # applies (the changes it calls as written: COMPILED_AROUND), and must step aside for every other change.
+    monkeypatch.setattr(TD3X, "compile_auto_min_steps", 0)
     case = CASES[name]
     fast = train(case)
     reference = train(case, mlp_update=False)
     assert reference.update_path == "autograd"
+    if name in COMPILED_AROUND:
+        assert fast.update_compiled and fast.update_path == "compiled_mlp"
+    else:
+        assert not fast.update_compiled and "compile_update=None (auto), not compiled: " in fast.compile_reason
     assert_same_weights(fast, reference, **ROUNDING_AMPLIFIED.get(name, {}))
     # The change matters: a path that dropped it would end far from the reference.
     dropped = float((outputs(reference) - unchanged_outputs()).abs().max())
@@ -366,6 +381,19 @@ def test_compiled_update_trains_what_the_eager_hooks_train(name, path):
     if name != "stock-defaults":
         dropped = train_updates(Case(), updates=20, mlp_update=False)
         assert max_difference(compiled, reference) < 0.1 * max_difference(dropped, reference)
+
+
+def test_auto_compiles_the_stock_update_of_a_long_run_and_it_trains_what_the_hooks_train(monkeypatch):
+    """compile_update=None (auto) on a run long enough (here: every run) compiles MlpUpdate, the default of a long run
+    on a CPU; held to what test_compiled_update_trains_what_the_eager_hooks_train holds compile_update=True to."""
+    monkeypatch.setattr(TD3X, "compile_auto_min_steps", 0)
+    auto = train_updates(STOCK["stock-defaults"], updates=20)
+    reference = train_updates(STOCK["stock-defaults"], updates=20, mlp_update=False)
+    assert auto.update_path == "compiled_mlp" and auto.update_compiled
+    assert_same_weights(auto, reference, rtol=1e-3, atol=5e-4)
+    broken = train_updates(STOCK["stock-defaults"], updates=20, tau=0.02)  # a different update: the test sees it
+    with pytest.raises(AssertionError):
+        assert_same_weights(broken, reference, rtol=1e-3, atol=5e-4)
 
 
 @pytest.mark.parametrize("name", ["stock-defaults", "critic-forward-subclass", "hook-set-on-instance"])

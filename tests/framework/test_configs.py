@@ -83,8 +83,8 @@ def test_sb3_td3_config_runs_the_td3_settings_and_refuses_td3x_only_switches():
 
 
 def test_the_accelerations_are_config_switches():
-    """algo.bf16, algo.compile_update and algo.cuda_graph reach TD3X; algo.cuda_graph is null (auto, the default),
-    true or false; cuda_graph=true without a GPU is a config error."""
+    """algo.bf16, algo.compile_update and algo.cuda_graph reach TD3X; algo.compile_update and algo.cuda_graph are
+    null (auto, the default), true or false; cuda_graph=true without a GPU is a config error."""
     cfg = compose_config(["algo=td3", "algo.buffer_size=1000", "device=cpu", "algo.compile_update=true", "algo.bf16=true"])
     check_config(cfg)
     env = make_train_env(cfg.env, n_envs=1, seed=0)
@@ -93,7 +93,9 @@ def test_the_accelerations_are_config_switches():
         model = build_algorithm(cfg, env)
     assert (model.bf16, model.compile_update, model.cuda_graph) == (True, True, False)
     defaults = build_algorithm(compose_config(["algo=td3", "algo.buffer_size=1000", "device=cpu"]), env)
-    assert (defaults.bf16, defaults.compile_update, defaults.cuda_graph) == (False, False, False)
+    assert (defaults.bf16, defaults.compile_update, defaults.cuda_graph) == (False, None, False)
+    for value, request in (("null", None), ("false", False), ("true", True)):
+        assert compose_config([f"algo.compile_update={value}"]).algo.compile_update is request
     assert defaults.cuda_graph_request is None and defaults.cuda_graph_reason == "cuda_graph=None (auto): no CUDA device"
     for value, request in (("null", None), ("false", False), ("true", True)):
         assert compose_config([f"algo.cuda_graph={value}"]).algo.cuda_graph is request

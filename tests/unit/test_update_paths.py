@@ -446,3 +446,99 @@ def test_a_whole_float_for_an_integer_field_says_how_to_write_it():
     assert cfg.total_timesteps == 1_000_000 and cfg.algo.batch_size == 256
     with pytest.raises(Exception, match="algo.batch_size=25.5"):  # not a whole number: Hydra's type check refuses it
         compose_config(["algo.batch_size=25.5"])
+
+
+# --- compile_update=None (auto): compiled where it wins, never a user's change ------------------------------------------
+class LongRunTD3X(TD3X):
+    """Every run counts as long enough to compile (the threshold is a class attribute a user can set too)."""
+
+    compile_auto_min_steps = 0
+
+
+def test_auto_does_not_compile_a_short_run_and_says_why(tmp_path):
+    model = small()
+    line = first_update_line(model, tmp_path)
+    assert model.compile_update is None and not model.update_compiled and model.update_path == "mlp"
+    assert "compile_update=None (auto), not compiled: a run of 10 training steps" in model.compile_reason
+    assert "pays for itself from 100,000" in line
+
+
+def test_auto_compiles_a_long_stock_run_and_a_resumed_run_decides_as_the_whole_run(tmp_path):
+    """The run's length is its target less learning_starts: a run stopped part-way and resumed with learn() of the
+    rest (reset_num_timesteps=False, as run.py resumes) decides as the uninterrupted run did, from its first step."""
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    class StopAt40(BaseCallback):
+        def _on_step(self) -> bool:
+            return self.num_timesteps < 40
+
+    def build() -> TD3X:
+        model = small(batch_size=32)
+        model.compile_auto_min_steps = 50  # runs of 50 training steps or more compile
+        return model
+
+    whole = build().learn(60)
+    assert whole.update_compiled and whole.update_path == "compiled_mlp"
+    assert whole.update_reason.startswith("compile_update=None (auto): a run of 50 training steps on a CPU")
+    stopped = build().learn(60, callback=StopAt40())
+    assert stopped.num_timesteps == 40 and stopped.update_compiled  # compiled from its first gradient step
+    stopped.save(tmp_path / "stopped")
+    resumed = TD3X.load(tmp_path / "stopped", env=stopped.get_env())
+    assert resumed.compile_update is None and not resumed.update_compiled  # the request is saved, not the decision
+    resumed.compile_auto_min_steps = 50
+    resumed.learn(60 - resumed.num_timesteps, reset_num_timesteps=False)
+    assert resumed.update_compiled and resumed.update_path == "compiled_mlp", resumed.compile_reason
+    asked_less = build().learn(40)  # a run of 30 training steps: not compiled
+    assert not asked_less.update_compiled and "a run of 30 training steps" in asked_less.compile_reason
+    asked_less.learn(20, reset_num_timesteps=False)  # continued to a run of 50: compiled from here
+    assert asked_less.update_compiled
+
+
+@pytest.mark.parametrize(
+    ("build", "reason"),
+    [
+        (lambda: small(mlp_update=False), "mlp_update=False"),
+        (lambda: small(policy=ScaledCriticPolicy), "the hooks run as written (the critic is a ScaledCritic, not SB3's TD3XCritic"),
+        (lambda: small_then(with_hook)(), "the hooks run as written (td_target set on the instance)"),
+        (lambda: small(compile_update=False), "compile_update=False"),
+    ],
+    ids=["mlp_update_false", "critic_forward", "hook_on_instance", "opted_out"],
+)
+def test_auto_never_compiles_a_change_or_an_opt_out(monkeypatch, build, reason):
+    monkeypatch.setattr(TD3X, "compile_auto_min_steps", 0)
+    model = build()
+    model.learn(20)
+    assert not model.update_compiled and not model.update_path.startswith("compiled")
+    assert reason in model.compile_reason
+
+
+def test_auto_steps_aside_where_there_is_no_cpu_compiler(monkeypatch):
+    from torch._inductor import config as inductor_config
+
+    from sb3_td3x.td3x.update_paths import compiled
+
+    monkeypatch.setattr(TD3X, "compile_auto_min_steps", 0)
+    compiled.why_no_cpu_compiler.cache_clear()
+    try:
+        with inductor_config.patch({"cpp.cxx": ("no-such-c++-compiler",)}):
+            model = small()
+            model.learn(20)
+    finally:
+        compiled.why_no_cpu_compiler.cache_clear()
+    assert not model.update_compiled and model.update_path == "mlp"
+    assert "no C++ compiler for torch.compile's CPU backend" in model.compile_reason
+
+
+def test_auto_compiles_on_a_cpu_only(monkeypatch):
+    from sb3_td3x.td3x.update_paths.compiled import why_not_compile
+
+    monkeypatch.setattr(TD3X, "compile_auto_min_steps", 0)
+    model = small()
+    assert why_not_compile(model) is None
+    monkeypatch.setattr(model, "device", th.device("cuda"))
+    assert why_not_compile(model) == "auto compiles on a CPU only (device cuda)"
+
+
+def test_compile_update_is_none_true_or_false():
+    with pytest.raises(ValueError, match="invalid compile_update='yes'; compile_update must be None"):
+        small(compile_update="yes")

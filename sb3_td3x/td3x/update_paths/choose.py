@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 import torch as th
 
 from sb3_td3x.td3x.hooks import changed_hooks
-from sb3_td3x.td3x.update_paths.compiled import FunctionalCompiledUpdate, compiled_step
+from sb3_td3x.td3x.update_paths.compiled import FunctionalCompiledUpdate, compiled_step, decide_compile
 from sb3_td3x.td3x.update_paths.cuda_graph import GraphedGradientStep, why_not_cuda_graph
 from sb3_td3x.td3x.update_paths.mlp import MlpUpdate
 
@@ -47,9 +47,12 @@ def choose_update(model: TD3X) -> UpdateChoice:
     In order: ``cuda_graph=True`` captures the hooks as written; ``cuda_graph=None`` (auto) set up for graphs when
     the model was built captures them where :func:`why_not_cuda_graph` still finds the update stock, and otherwise
     steps aside (the model is set up for eager steps again) to what follows, saying why; ``compile_update=True``
-    compiles ``MlpUpdate`` where it applies, else the hooks (functional, else as they are); otherwise ``MlpUpdate``
+    compiles ``MlpUpdate`` where it applies, else the hooks (functional, else as they are), and
+    ``compile_update=None`` (auto) compiles ``MlpUpdate`` where
+    :func:`~sb3_td3x.td3x.update_paths.compiled.why_not_compile` finds nothing against it; otherwise ``MlpUpdate``
     where it applies, else the hooks with autograd. ``mlp_update=False`` rules ``MlpUpdate`` out.
     """
+    decide_compile(model)
     if model.cuda_graph:
         if model.cuda_graph_request:
             return UpdateChoice(
@@ -72,11 +75,11 @@ def _eager_choice(model: TD3X) -> UpdateChoice:
         mlp_reason: str | None = "mlp_update=False"
     else:
         mlp_reason = MlpUpdate.why_not(model)
-    if model.compile_update:
+    if model.update_compiled:
         if mlp_reason is None:
             return UpdateChoice(
                 "compiled_mlp",
-                "compile_update=True; MlpUpdate applies (SB3's ReLU MLP actor and critics, the hooks as written)",
+                f"{model.compile_reason}; MlpUpdate applies (SB3's ReLU MLP actor and critics, the hooks as written)",
                 _sampled(model, MlpUpdate(model, compile=True)),
             )
         if changed := changed_hooks(model, ("gradient_step",)):

@@ -1,6 +1,10 @@
-"""``compile_update=True``: the update compiled with ``torch.compile``.
+"""The update compiled with ``torch.compile``: whether (``compile_update``: ``None``, auto, by default) and how.
 
-Two ways, chosen by :func:`~sb3_td3x.td3x.update_paths.choose_update`:
+:func:`why_not_compile` is auto's rule: compile where it wins and computes what the code says (``MlpUpdate``'s
+gradient functions, on a CPU, for a run long enough to pay for the compilation), never a user's change.
+
+Two ways of compiling the hooks themselves (``compile_update=True`` where ``MlpUpdate`` does not apply), chosen by
+:func:`~sb3_td3x.td3x.update_paths.choose_update`:
 
 - :class:`FunctionalCompiledUpdate`: steps 5 to 15 as one graph, the model's own loss hooks evaluated with
   ``torch.func`` (so overridden losses, targets and networks are compiled as written), Adam's rule on the
@@ -14,6 +18,7 @@ Two ways, chosen by :func:`~sb3_td3x.td3x.update_paths.choose_update`:
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
@@ -22,11 +27,88 @@ import torch as th
 from sb3_td3x.common.torch_internals import global_optimizer_hooks, optimizer_step_hooks
 from sb3_td3x.td3x.hooks import changed_hooks
 from sb3_td3x.td3x.update_paths import requirements
+from sb3_td3x.td3x.update_paths.mlp import MlpUpdate
 
 if TYPE_CHECKING:
     from sb3_td3x.td3x.td3x import TD3X
 
 Infos = tuple[dict[str, th.Tensor], dict[str, th.Tensor]]
+
+#: What compiling costs at the first gradient steps (Hopper-v5, 400-300 networks, 2 cores of an Intel Xeon with
+#: AVX-512, torch 2.13): said in auto's reason for a short run.
+COMPILE_COST = "about 3 s with Inductor's cache warm, 16 s cold"
+
+
+def training_steps(model: TD3X) -> int:
+    """The environment steps after ``learning_starts`` of the run ``learn()`` was last asked for: its target
+    (``_total_timesteps``, counted from the run's start, so the same for a resumed run as for the uninterrupted
+    one) less ``learning_starts``. With ``train_freq=1`` and ``gradient_steps=1``, its gradient steps."""
+    return max(0, int(getattr(model, "_total_timesteps", 0)) - max(0, int(model.learning_starts)))
+
+
+@functools.cache
+def why_no_cpu_compiler() -> str | None:
+    """Why ``torch.compile`` cannot compile for a CPU here (no C++ compiler for Inductor), or ``None``."""
+    try:
+        from torch._inductor.cpp_builder import get_cpp_compiler
+
+        get_cpp_compiler()
+    except Exception as error:  # torch raises its own error types, which differ between versions
+        return f"no C++ compiler for torch.compile's CPU backend ({type(error).__name__}: {str(error).strip()[:200]})"
+    return None
+
+
+def why_not_compile(model: TD3X) -> str | None:
+    """Why ``compile_update=None`` (auto) runs ``model``'s update uncompiled, or ``None`` where it compiles it: the
+    first condition that fails, in one line.
+
+    Auto compiles only where it was measured to win and computes what the code says (docs/performance.md): on a CPU
+    (on a GPU, CUDA graphs are auto's fast path), in fp32, ``MlpUpdate``'s gradient functions (SB3's ReLU MLP actor
+    and critics, every hook of steps 5 to 13 as written: a user's change always runs uncompiled, as written), with a
+    C++ compiler for Inductor, and for a run of at least ``model.compile_auto_min_steps`` training steps
+    (:func:`training_steps`), which pays back the compilation's start-up cost (:data:`COMPILE_COST`).
+    """
+    if model.device.type != "cpu":
+        return f"auto compiles on a CPU only (device {model.device})"
+    if model.bf16:
+        return "bf16=True (compiled bf16 products are not measured to win)"
+    if not model.mlp_update:
+        return "mlp_update=False"
+    if (why := MlpUpdate.why_not(model)) is not None:
+        return f"the hooks run as written ({why})"
+    steps, least = training_steps(model), int(model.compile_auto_min_steps)
+    if steps < least:
+        return (
+            f"a run of {steps:,} training steps: compiling ({COMPILE_COST}) pays for itself from {least:,} "
+            "(compile_update=True compiles any run)"
+        )
+    return why_no_cpu_compiler()
+
+
+def decide_compile(model: TD3X) -> bool:
+    """Whether ``model``'s update is compiled, from ``compile_update`` (``None``: :func:`why_not_compile`); sets
+    ``model.update_compiled`` and ``model.compile_reason`` (logged with the update at the first ``train()``)."""
+    request = model.compile_update
+    if request is None:
+        why = why_not_compile(model)
+        on = why is None
+        reason = (
+            f"compile_update=None (auto): a run of {training_steps(model):,} training steps on a CPU, MlpUpdate's "
+            "gradient functions compiled"
+            if on
+            else f"compile_update=None (auto), not compiled: {why}"
+        )
+    else:
+        on, reason = bool(request), f"compile_update={bool(request)}"
+    model.update_compiled, model.compile_reason = on, reason
+    return on
+
+
+def compile_watch(model: TD3X) -> tuple[Any, bool]:
+    """What :func:`decide_compile` decides from, in short (read at every ``train()`` call, so cheap): the request,
+    and for auto whether the run is long enough. When it changes, the update is chosen again."""
+    request = model.compile_update
+    return request, request is None and training_steps(model) >= model.compile_auto_min_steps
 
 
 def compiled_step(update: Callable[[Any, bool], Infos]) -> Callable[[Any, bool], Infos]:

@@ -433,7 +433,7 @@ SHARED_SETTINGS = (
     "target_noise_clip",
     "clipped_double_q",
     "bf16",
-    "compile_update",
+    "update_compiled",
     "flush_denormals",
 )
 
@@ -445,7 +445,7 @@ class MlpUpdate(requirements.FastPath):
     ``sample_batch``, ``should_update_actor``, ``update_actor_target`` and ``update_critic_target``.
 
     Called as ``update(batch, update_actor)``, like :meth:`TD3X.update_from_batch`, and returns the same statistics.
-    With ``compile=True`` (``compile_update=True``), :func:`critic_gradients` and :func:`actor_gradients` are compiled
+    With ``compile=True`` (``update_compiled``: ``compile_update=True``, or auto on a long run), :func:`critic_gradients` and :func:`actor_gradients` are compiled
     with ``torch.compile`` (one graph each); sampling, the random numbers, the optimizers and the target updates stay
     eager.
 
