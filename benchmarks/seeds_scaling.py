@@ -86,6 +86,8 @@ from stable_baselines3.common.logger import configure
 from stable_baselines3.common.noise import NormalActionNoise
 from stable_baselines3.common.utils import get_device
 
+from throughput import as_part_of_a_run
+
 from sb3_td3x import TD3X, SeedBatch
 
 MODES = ("batched", "batched_per_core", "td3x_procs", "sb3_procs", "sbx_procs")
@@ -138,6 +140,7 @@ class Config:
     warmup: int
     steps: int
     device: str
+    run_length: int = 1_000_000  # a TD3X has the defaults of a run this long (compile_update=None decides from it)
 
 
 def make_model(algo: type, config: Config, seed: int) -> TD3:
@@ -157,7 +160,7 @@ def make_model(algo: type, config: Config, seed: int) -> TD3:
         **PAPER,
     )
     model.set_logger(configure(None, []))
-    return model
+    return as_part_of_a_run(model, config.run_length)
 
 
 def _synchronize(device: str) -> None:
@@ -418,6 +421,10 @@ def parse_arguments(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--steps", type=int, default=2_000, help="timed environment steps per seed")
     parser.add_argument("--warmup", type=int, default=500, help="untimed training steps past learning_starts")
     parser.add_argument("--learning-starts", type=int, default=1_000)
+    parser.add_argument(
+        "--run-length", type=int, default=1_000_000,
+        help="TD3X has the defaults of a run of this many steps (compile_update=None compiles a long one)",
+    )
     parser.add_argument("--buffer-size", type=int, default=1_000_000)
     parser.add_argument("--net", type=int, nargs="+", default=[400, 300])
     parser.add_argument(
@@ -501,6 +508,7 @@ def main(argv: list[str] | None = None) -> None:
         args.warmup,
         args.steps,
         args.device,
+        args.run_length,
     )
     machine = machine_info(args.device)
     print(f"machine: {machine}")

@@ -1,7 +1,7 @@
 """Where an environment step of TD3X goes: matrix products, optimizer and Polyak, other kernels, Python, environment.
 
     python benchmarks/step_split.py --env Hopper-v5 --batch-size 100 --threads 2
-    python benchmarks/step_split.py --variants compile_update=false compile_update=true   # before and after
+    python benchmarks/step_split.py --variants compile_update=false -   # the eager update and the default
 
 Each variant is a TD3X (``benchmarks/throughput.py``'s settings: 400-300, lr 1e-3, 1000 random steps, N(0, 0.1)
 exploration) with the given arguments (``-`` for none); all run in one process, chunks of ``learn()`` alternated.
@@ -32,7 +32,7 @@ import statistics
 import time
 
 import torch as th
-from throughput import make_model, parse_value
+from throughput import RUN_LENGTH, make_model, parse_value
 
 from sb3_td3x import TD3X
 
@@ -86,7 +86,7 @@ def kernel_split(model: TD3X, steps: int) -> dict[str, float]:
 def run(env_id: str, args: argparse.Namespace) -> dict:
     variants = {text: parse_variant(text) for text in args.variants}
     common = {"buffer_size": args.buffer_size, "batch_size": args.batch_size}
-    models = {text: make_model(TD3X, env_id, args.seed, {**common, **kw}) for text, kw in variants.items()}
+    models = {text: make_model(TD3X, env_id, args.seed, {**common, **kw}, args.run_length) for text, kw in variants.items()}
     for model in models.values():
         model.learn(args.warmup, reset_num_timesteps=True)
     clocks = {text: EnvClock(model) for text, model in models.items()}
@@ -113,7 +113,8 @@ def run(env_id: str, args: argparse.Namespace) -> dict:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--env", nargs="+", default=["Hopper-v5"])
-    parser.add_argument("--variants", nargs="+", default=["compile_update=false", "compile_update=true"])
+    parser.add_argument("--variants", nargs="+", default=["compile_update=false", "-"],
+                        help="TD3X arguments per variant, KEY=VALUE,KEY=VALUE ('-': the defaults)")
     parser.add_argument("--chunks", type=int, default=5)
     parser.add_argument("--chunk-steps", type=int, default=500)
     parser.add_argument("--warmup", type=int, default=1_500)
@@ -121,6 +122,7 @@ def main() -> None:
     parser.add_argument("--batch-size", type=int, default=100)
     parser.add_argument("--threads", type=int, default=os.cpu_count())
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--run-length", type=int, default=RUN_LENGTH, help="TD3X's defaults are those of a run this long")
     parser.add_argument("--json", help="write the results to this file")
     args = parser.parse_args()
     th.set_num_threads(args.threads)

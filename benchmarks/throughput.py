@@ -69,9 +69,24 @@ def matmul_peak_gflops(dtype: th.dtype = th.float32, n: int = 2048, reps: int = 
     return 2 * n**3 * reps / (time.perf_counter() - start) / 1e9
 
 
-def make_model(algo: type, env_id: str, seed: int, extra: dict) -> TD3:
+#: The run a benchmark's TD3X stands for (``--run-length``): its chunks are learn() calls of a few hundred steps, and
+#: ``compile_update=None`` (auto) decides from the length of the run (TD3X.compile_auto_min_steps).
+RUN_LENGTH = 1_000_000
+
+
+def as_part_of_a_run(model: TD3, run_length: int) -> TD3:
+    """A TD3X whose auto settings decide as in a run of ``run_length`` steps: the default of such a run. Other
+    algorithms are returned as they are."""
+    if isinstance(model, TD3X):
+        long = run_length - model.learning_starts >= type(model).compile_auto_min_steps
+        model.compile_auto_min_steps = 0 if long else 2**62
+    return model
+
+
+def make_model(algo: type, env_id: str, seed: int, extra: dict, run_length: int = RUN_LENGTH) -> TD3:
     """``algo`` on ``env_id`` with the benchmark's settings: 1000 random steps, N(0, 0.1) exploration; the learning
-    rate (1e-3) and networks (400-300) written out, since SBX's defaults differ from SB3's."""
+    rate (1e-3) and networks (400-300) written out, since SBX's defaults differ from SB3's; a TD3X with the defaults
+    of a run of ``run_length`` steps (:func:`as_part_of_a_run`)."""
     env = gym.make(env_id)
     action_dim = env.action_space.shape[0]
     kwargs = {"learning_rate": 1e-3, "policy_kwargs": {"net_arch": [400, 300]}, **extra}
@@ -84,7 +99,7 @@ def make_model(algo: type, env_id: str, seed: int, extra: dict) -> TD3:
         **kwargs,
     )
     model.set_logger(configure(None, []))
-    return model
+    return as_part_of_a_run(model, run_length)
 
 
 def sbx_td3(threads: int) -> type | None:
@@ -397,7 +412,7 @@ def bytes_per_transition(model: TD3) -> float:
 def bench_env(env_id: str, args: argparse.Namespace, td3x_kwargs: dict, peer: type | None = None) -> dict:
     common = {"buffer_size": args.buffer_size, "batch_size": args.batch_size}
     sb3 = make_model(TD3, env_id, args.seed, common)
-    td3x = make_model(TD3X, env_id, args.seed, {**common, **td3x_kwargs})
+    td3x = make_model(TD3X, env_id, args.seed, {**common, **td3x_kwargs}, args.run_length)
     models = {"sb3": sb3, "td3x": td3x}
     if peer is not None:
         models["sbx"] = make_model(peer, env_id, args.seed, common)
@@ -419,7 +434,7 @@ def bench_env(env_id: str, args: argparse.Namespace, td3x_kwargs: dict, peer: ty
             for which in replayed:
                 replayed[which].append(replay.time(which, rounds=max(1, args.chunk_steps // (10 * replay.delay))))
     ratios = [b / a for a, b in zip(rates["sb3"], rates["td3x"])]
-    result = {"env": env_id, "batch_size": args.batch_size, "steps_per_s": {k: statistics.median(v) for k, v in rates.items()},
+    result = {"env": env_id, "batch_size": args.batch_size, "td3x_update_path": td3x.update_path, "steps_per_s": {k: statistics.median(v) for k, v in rates.items()},
               "chunks": rates, "median_ratio": statistics.median(ratios), "ratios": ratios,
               "cores_used": {k: statistics.median(v) for k, v in cores.items()}}
     if "sbx" in models:
@@ -503,6 +518,10 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=os.cpu_count())
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--td3x", nargs="*", default=[], metavar="KEY=VALUE", help="extra TD3X arguments (opt-in flags)")
+    parser.add_argument(
+        "--run-length", type=int, default=RUN_LENGTH,
+        help="TD3X runs with the defaults of a run of this many steps (compile_update=None compiles a long one)",
+    )
     parser.add_argument("--json", help="write the results to this file")
     parser.add_argument(
         "--breakdown", action="store_true", help="also time TD3X's operators one by one in the in-sequence replay"
@@ -524,14 +543,15 @@ def main() -> None:
         import jax
 
         machine["jax"] = jax.__version__
-    print(f"machine: {machine}\nTD3X extra arguments: {td3x_kwargs or 'none (defaults, fp32)'}")
+    print(f"machine: {machine}\nTD3X extra arguments: {td3x_kwargs or 'none (defaults, fp32)'}; "
+          f"the defaults of a run of {args.run_length:,} steps")
     if peer is None and not args.no_sbx:
         print('SBX is not installed (pip install -e ".[peers]"): SB3 and TD3X only')
     results = []
     for env_id in args.env:
         r = bench_env(env_id, args, td3x_kwargs, peer)
         results.append(r)
-        print(f"\n{env_id}, batch {args.batch_size}")
+        print(f"\n{env_id}, batch {args.batch_size}; TD3X's update: {r['td3x_update_path']}")
         names = {"sb3": "SB3 TD3", "td3x": "TD3X", "sbx": "SBX TD3"}
         print("  end-to-end steps/s  " + "   ".join(f"{names[k]} {v:8.1f}" for k, v in r["steps_per_s"].items()))
         print("  cores used          " + "   ".join(f"{names[k]} {v:8.2f}" for k, v in r["cores_used"].items()))
