@@ -317,7 +317,10 @@ class InSequenceReplay:
 
     @staticmethod
     def applies(model: TD3) -> bool:
-        return not getattr(model, "compile_update", False) and not getattr(model, "cuda_graph", False)
+        """Not for a compiled update (asked for, or chosen by auto at the warm-up's first ``train()``): recording it
+        under a dispatch mode would compile it again, and its kernels do not all pass the dispatcher."""
+        compiled = getattr(model, "compile_update", False) or getattr(model, "update_compiled", False)
+        return not compiled and not getattr(model, "cuda_graph", False)
 
     def replay(self, which: str, clock: dict | None = None) -> None:
         """One replay of the recorded operators (``"kernels"``) or of their products (``"products"``); with a

@@ -16,6 +16,20 @@ from stable_baselines3.common.type_aliases import ReplayBufferSamples
 th.set_num_threads(int(os.environ.get("SB3_TD3X_TEST_THREADS", "1")))
 
 
+def _inductor_cache_per_test_process() -> None:
+    """Each pytest-xdist process (and what it starts) compiles into a cache folder of its own: Inductor's one folder
+    shared by many processes compiling at once failed with "file too short" on a 16-core GPU machine (issue 35).
+    The folder is kept between runs (``<Inductor's default>/<worker>``), so a second run finds its kernels."""
+    worker = os.environ.get("PYTEST_XDIST_WORKER")
+    if worker and "TORCHINDUCTOR_CACHE_DIR" not in os.environ:
+        from torch._inductor.runtime.cache_dir_utils import default_cache_dir
+
+        os.environ["TORCHINDUCTOR_CACHE_DIR"] = os.path.join(default_cache_dir(), f"pytest_{worker}")
+
+
+_inductor_cache_per_test_process()
+
+
 @pytest.fixture(scope="session", autouse=True)
 def _sb3_logdir(tmp_path_factory):
     """SB3's ``configure(None, ...)`` (every ``learn()`` without ``tensorboard_log``, and the tests' silent loggers)

@@ -21,6 +21,7 @@ from omegaconf.errors import OmegaConfBaseException
 
 from sb3_td3x.common.redaction import redact, redact_log_records
 from sb3_td3x.experiment import jobs
+from sb3_td3x.experiment.jobs import available_cores
 from sb3_td3x.experiment.checkpoints import seed_folders
 from sb3_td3x.experiment.errors import ConfigError, RunFilesNotWritten, TrainingDiverged, TrainingInterrupted
 from sb3_td3x.experiment.run_folder import check_new, check_resumable, config_for_resume
@@ -138,14 +139,6 @@ def shared_gpu(args: list[str], conf_dir: Path) -> contextlib.AbstractContextMan
     except Exception:  # noqa: BLE001  (a composition error is reported by Hydra itself)
         return contextlib.nullcontext()
     return mps.around_launch(parallel, str(cfg.device), bool(cfg.mps), say=lambda line: print(line, file=sys.stderr))
-
-
-def available_cores() -> int:
-    """The CPUs this process may run on (its affinity mask where the OS has one, as joblib counts them)."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # macOS, Windows
-        return os.cpu_count() or 1
 
 
 def default_threads(multirun: bool, launcher: DictConfig | dict) -> int | None:

@@ -80,6 +80,14 @@ def job_cores(environ: dict[str, str] | None = None) -> int | None:
     return None
 
 
+def available_cores() -> int:
+    """The CPUs this process may run on (its affinity mask where the OS has one, as joblib counts them)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # macOS, Windows
+        return os.cpu_count() or 1
+
+
 def in_submitit_job() -> bool:
     """Whether this process runs a function submitit submitted (its ``process_job`` sets ``SUBMITIT_FOLDER``)."""
     return bool(os.environ.get("SUBMITIT_FOLDER"))

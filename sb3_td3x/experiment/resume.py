@@ -17,7 +17,7 @@ from omegaconf.errors import OmegaConfBaseException
 from sb3_td3x.experiment.errors import ConfigError
 
 #: Fields (and whole sections) a resume may change; they take effect at the checkpoint's step.
-RESUMABLE = ("total_timesteps", "eval.freq", "checkpoint", "logger", "video", "device", "torch_threads", "progress_bar", "mps")
+RESUMABLE = ("total_timesteps", "eval.freq", "checkpoint", "logger", "video", "device", "torch_threads", "progress_bar", "mps", "seed_processes")
 #: Fields that name where the run is, not what it computes (a run folder may be moved).
 LOCATION = ("run_dir", "resume", "seed_run_dirs")
 

@@ -76,7 +76,8 @@ def run_experiment(
     credentials), ``evaluations.csv``/``.json``, ``checkpoints/{last,best}``, ``tb/`` (TensorBoard), ``wandb/``,
     ``learning_curve.png``, ``summary.json`` and, with ``video=final``, ``video.gif``.
 
-    With ``cfg.seeds`` (``seeds=[0,1,2]``), the seeds train together in this process (:class:`~sb3_td3x.SeedBatch`),
+    With ``cfg.seeds`` (``seeds=[0,1,2]``), the seeds train together (:class:`~sb3_td3x.SeedBatch`; on a CPU in one
+    process per core, :mod:`~sb3_td3x.experiment.seed_processes`, unless ``report`` or ``report_seeds`` is given),
     each computing what its lone ``seed=`` run computes and writing the same run folder, at ``cfg.seed_run_dirs``
     (``run.py`` sets them: ``runs/<env>/<algo>/seed<s>/<date>``) or else ``<run_dir>/seed<s>``. The return value is
     then the ``seeds_aggregate`` ("mean" or "iqm") of the seeds' final mean returns.
@@ -113,6 +114,11 @@ def run_experiment(
         torch.set_num_threads(cfg.torch_threads)
     try:
         if cfg.seeds is not None:
+            if report is None and report_seeds is None:  # a sweep's trial reports from one process
+                from sb3_td3x.experiment.seed_processes import processes_for, run_in_processes
+
+                if (processes := processes_for(cfg)) > 1:
+                    return run_in_processes(cfg, start.how, seeds_aggregate, processes)
             return _run_seeds(cfg, start.how, report, seeds_aggregate, report_seeds)
         return _run_one(cfg, start.how, report)
     except RunFilesNotWritten as error:
@@ -174,6 +180,7 @@ class _Run:
     remaining: int = 0
     run_name: str = ""
     succeeded: bool = False
+    trained_together: list[int] | None = None  # the seeds of its process's SeedBatch
 
 
 def _prepare(cfg: DictConfig, how: str) -> _Run:
@@ -343,7 +350,8 @@ def _finish(run: _Run) -> float:
         "provenance": provenance(),
     }
     if cfg.seeds is not None:
-        summary["trained_with_seeds"] = list(cfg.seeds)  # one process, sb3_td3x.SeedBatch
+        summary["trained_with_seeds"] = list(cfg.seeds)  # launched together (seeds=[...])
+        summary["trained_together"] = run.trained_together  # in one process, one sb3_td3x.SeedBatch
     assert run.folder is not None
     run.folder.write_summary(summary)
     if cfg.video is not None:
@@ -454,18 +462,51 @@ def _run_seeds(
 ) -> float:
     """``cfg.seeds`` trained together: each seed's run prepared as its lone run is (folder, envs, model, callbacks),
     then one :class:`~sb3_td3x.SeedBatch` learns them all; each seed's folder is finished as a lone run's."""
-    seeds = [int(s) for s in cfg.seeds]
-    dirs = seed_run_dirs(cfg)
-    runs: list[_Run] = []
-    handlers: list[logging.Handler] = []
+    seeds, dirs = [int(s) for s in cfg.seeds], seed_run_dirs(cfg)
+    check_batch_resumable(cfg, dirs)
+    finals, errors = train_seed_group(cfg, how, list(range(len(seeds))), statistic, report, report_seeds)
+    return end_of_batch(seeds, dirs, finals, errors, statistic)
+
+
+def check_batch_resumable(cfg: DictConfig, dirs: list[Path]) -> None:
+    """A resumed batch needs a checkpoint in one of its seeds' folders at least (a seed without one starts afresh)."""
     if cfg.resume is not None and not any(find_checkpoint(checkpoint_dir(d, LAST)) for d in dirs):
         raise ConfigError(
             f"resume={cfg.resume}: none of the batch's seed folders ({', '.join(map(str, dirs))}) has a checkpoint, "
             "so there is nothing to resume; start the batch again without resume=."
         )
+
+
+def end_of_batch(
+    seeds: list[int], dirs: list[Path], finals: dict[int, float], errors: dict[int, BaseException], statistic: str
+) -> float:
+    """What stopped a seed, raised (:func:`_raise_first`); else the seeds' aggregate, logged with its table."""
+    _raise_first(errors, seeds, dirs)
+    value = seed_statistic(statistic, list(finals.values()))
+    _log_seed_aggregate(dirs, seeds, finals, statistic, value)
+    return value
+
+
+def train_seed_group(
+    cfg: DictConfig,
+    how: str,
+    indices: list[int],
+    statistic: str = "mean",
+    report: Callable[[int, float], None] | None = None,
+    report_seeds: Callable[[int, dict[int, float]], None] | None = None,
+) -> tuple[dict[int, float], dict[int, BaseException]]:
+    """The seeds ``cfg.seeds[i]`` for ``i`` in ``indices`` trained together in this process (one
+    :class:`~sb3_td3x.SeedBatch`), each in its folder of ``seed_run_dirs(cfg)``, each folder finished as a lone
+    run's. Every seed's ``config.yaml`` lists all of ``cfg.seeds`` and their folders, so that ``resume=`` of any
+    continues them all. Returns each finished seed's final mean return and what stopped each other one (keyed by
+    seed); raises what ``report`` raised."""
+    all_seeds, all_dirs = [int(s) for s in cfg.seeds], seed_run_dirs(cfg)
+    seeds, dirs = [all_seeds[i] for i in indices], [all_dirs[i] for i in indices]
+    runs: list[_Run] = []
+    handlers: list[logging.Handler] = []
     caller = RandomStreams().state()
     try:
-        streams = _prepare_seeds(cfg, how, seeds, dirs, runs, handlers)
+        streams = _prepare_seeds(cfg, how, seeds, dirs, all_dirs, runs, handlers)
         RandomStreams().set_state(caller)
         reports = _SeedReports(seeds, runs, statistic, report, report_seeds)
         for index, run in enumerate(runs):
@@ -479,10 +520,7 @@ def _run_seeds(
             if index not in errors:
                 with acting_as(index):
                     finals[seeds[index]] = _finish(run)
-        _raise_first(errors, seeds, dirs)
-        value = seed_statistic(statistic, list(finals.values()))
-        _log_seed_aggregate(dirs, seeds, finals, statistic, value)
-        return value
+        return finals, {seeds[index]: error for index, error in errors.items()}
     finally:
         RandomStreams().set_state(caller)
         for run in runs:
@@ -493,7 +531,13 @@ def _run_seeds(
 
 
 def _prepare_seeds(
-    cfg: DictConfig, how: str, seeds: list[int], dirs: list[Path], runs: list[_Run], handlers: list[logging.Handler]
+    cfg: DictConfig,
+    how: str,
+    seeds: list[int],
+    dirs: list[Path],
+    all_dirs: list[Path],
+    runs: list[_Run],
+    handlers: list[logging.Handler],
 ) -> list[RandomStreams]:
     """Each seed's run prepared as its lone run is (into ``runs``, its log file into ``handlers``); returns each
     model's random streams, detached where its lone run stands when it calls learn(). A seed of a batch that
@@ -502,7 +546,7 @@ def _prepare_seeds(
     for index, (seed, run_dir) in enumerate(zip(seeds, dirs)):
         seed_cfg = OmegaConf.create(OmegaConf.to_container(cfg, resolve=False))
         seed_cfg.seed, seed_cfg.run_dir = seed, str(run_dir)
-        seed_cfg.seed_run_dirs = [str(d) for d in dirs]
+        seed_cfg.seed_run_dirs = [str(d) for d in all_dirs]
         resumes = cfg.resume is not None and find_checkpoint(checkpoint_dir(run_dir, LAST)) is not None
         if cfg.resume is not None and not resumes:
             log.warning("Seed %d has no checkpoint in %s: it starts from the beginning (as its lone run would).", seed, run_dir)
@@ -511,6 +555,7 @@ def _prepare_seeds(
             handlers.append(handler)
         with acting_as(index):
             runs.append(_prepare(seed_cfg, how if resumes else (NEW if how == NEW else RESTARTED)))
+            runs[-1].trained_together = list(seeds)
             streams.append(detached_streams(runs[-1].model))
     return streams
 
@@ -527,11 +572,12 @@ def _train_seeds(
         [runs[i].model for i in training], [streams[i] for i in training], [seeds[i] for i in training]
     )
     reason = batch.why_not_stacked()
-    log.info(
-        "Training seeds %s together in one process: %s",
-        [seeds[i] for i in training],
-        "the gradient steps batched (seed_stacked_mlp)" if reason is None else f"each seed's update alone ({reason})",
-    )
+    if len(training) > 1:
+        log.info(
+            "Training seeds %s together in one process: %s",
+            [seeds[i] for i in training],
+            "the gradient steps batched (seed_stacked_mlp)" if reason is None else f"each seed's update alone ({reason})",
+        )
     with StopOnSignal(*[runs[i].checkpointer for i in training]):  # type: ignore[misc]
         batch.learn(
             total_timesteps=[runs[i].remaining for i in training],
@@ -545,15 +591,16 @@ def _train_seeds(
 
 
 def _raise_first(errors: dict[int, BaseException], seeds: list[int], dirs: list[Path]) -> None:
-    """What stopped a seed, if any: an interruption first (the batch resumes), then a divergence, then the rest."""
+    """What stopped a seed (``errors`` maps a seed to it), if any: an interruption first (the batch resumes), then a
+    divergence, then the rest; among seeds of one kind, the first in ``seeds``."""
     for kind in (TrainingInterrupted, TrainingDiverged, BaseException):
-        failed = [(i, e) for i, e in errors.items() if isinstance(e, kind)]
+        failed = [(seed, errors[seed]) for seed in seeds if isinstance(errors.get(seed), kind)]
         if failed:
-            index, error = failed[0]
+            seed, error = failed[0]
             if isinstance(error, TrainingInterrupted):
                 # Resume the batch from any seed's folder (each config.yaml lists them all).
                 raise TrainingInterrupted(error.signal_name, error.exit_code, error.num_timesteps, str(dirs[0])) from error
-            log.error("Seed %d failed: %s", seeds[index], error)
+            log.error("Seed %d failed: %s", seed, error)
             raise error
 
 

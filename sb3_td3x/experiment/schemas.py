@@ -171,6 +171,9 @@ class ExperimentConfig:
     seed: int = II("td3x.first_seed:${seeds}")  # 0, or with seeds=[...] the first of them (its run folder is Hydra's)
     # Several seeds trained together in this process (sb3_td3x.SeedBatch), each as its lone seed= run: seeds=[0,1,2]
     seeds: list[int] | None = None
+    # How many processes train them: null (auto) one per core of the run on a CPU (every P-th seed each: a seed
+    # computes what its lone run computes however they are grouped), one on a GPU; a number: that many
+    seed_processes: int | None = None
     # Set by the run (not by hand): each seed's run folder, saved in every seed's config.yaml so that resume=<any
     # seed's folder> resumes the whole batch
     seed_run_dirs: list[str] | None = None
@@ -320,6 +323,10 @@ def check_config(cfg: DictConfig) -> None:
         if cfg.seed_run_dirs is not None and len(cfg.seed_run_dirs) != len(seeds):
             problems.append(f"seed_run_dirs has {len(cfg.seed_run_dirs)} folders for {len(seeds)} seeds; leave it unset")
     need(cfg.torch_threads is None or cfg.torch_threads >= 1, f"torch_threads={cfg.torch_threads} must be >= 1 or null")
+    need(
+        cfg.get("seed_processes") is None or cfg.seed_processes >= 1,
+        f"seed_processes={cfg.get('seed_processes')} must be >= 1 or null (one process per core on a CPU)",
+    )
     problems += _device_problems(cfg.device)
 
     algo = cfg.algo

@@ -1,6 +1,6 @@
-"""``python run.py seeds=[...]``: the seeds trained in one process write the folders their lone ``seed=`` runs write,
-with the same evaluations, weights and replay buffers (to the bit on a CPU); a batch stopped by SIGTERM resumes,
-whole, from any seed's folder."""
+"""``python run.py seeds=[...]``: the seeds trained together (in one process, or in one per core) write the folders
+their lone ``seed=`` runs write, with the same evaluations, weights and replay buffers (to the bit on a CPU); a batch
+stopped by SIGTERM resumes, whole, from any seed's folder."""
 
 from __future__ import annotations
 
@@ -78,6 +78,10 @@ HOPPER = [
 ]
 
 
+def summary_of(run_dir: Path) -> dict:
+    return json.loads((run_dir / "summary.json").read_text())
+
+
 def final_state(run_dir: Path) -> tuple[list[dict[str, str]], dict[str, th.Tensor], dict[str, th.Tensor]]:
     """The evaluations (as written), the final weights and the replay buffer's contents of a finished run."""
     with open(run_dir / "evaluations.csv") as file:
@@ -99,13 +103,18 @@ def largest_difference(ours: dict[str, th.Tensor], theirs: dict[str, th.Tensor])
 
 
 def test_each_batched_seed_is_its_lone_run_to_the_bit_on_hopper(tmp_path):
-    """``seeds=[0,1,2]`` against three lone ``seed=i`` runs: every seed's evaluations, final weights and replay buffer
-    bit-identical to its lone run's, after 2000 gradient steps."""
+    """``seeds=[0,1,2]`` in two processes against three lone ``seed=i`` runs: every seed's evaluations, final weights
+    and replay buffer bit-identical to its lone run's, after 2000 gradient steps."""
     seeds = (0, 1, 2)
-    processes = [run_py(*HOPPER, "seeds=[0,1,2]", f"run_dir={tmp_path / 'batch'}")]
+    # Two processes (seed_processes, as on two cores by default): seeds 0 and 2 batched in one, seed 1 in the other.
+    processes = [run_py(*HOPPER, "seeds=[0,1,2]", "seed_processes=2", f"run_dir={tmp_path / 'batch'}")]
     processes += [run_py(*HOPPER, f"seed={seed}", f"run_dir={tmp_path / f'lone{seed}'}") for seed in seeds]
     for process in processes:
         finish(process, timeout=1500)
+    for seed, together in zip(seeds, ([0, 2], [1], [0, 2])):
+        summary = json.loads((tmp_path / "batch" / f"seed{seed}" / "summary.json").read_text())
+        assert summary["trained_with_seeds"] == [0, 1, 2] and summary["trained_together"] == together
+        assert summary["update_path"] == ("seed_stacked_mlp" if len(together) > 1 else "mlp")
     for seed in seeds:
         (rows, weights, buffer), (lone_rows, lone_weights, lone_buffer) = (
             final_state(tmp_path / "batch" / f"seed{seed}"),
@@ -125,7 +134,7 @@ def test_each_batched_seed_is_its_lone_run_to_the_bit_on_hopper(tmp_path):
 def test_a_batch_writes_the_folders_and_evaluations_of_its_lone_runs(tmp_path):
     batch_dir, lone_dir = tmp_path / "batch", tmp_path / "lone"
     lone = run_py(*RUN, "seed=1", f"run_dir={lone_dir}")  # beside the batch: 2 cores
-    stdout, _ = finish(run_py(*RUN, "seeds=[0,1]", f"run_dir={batch_dir}"))
+    stdout, _ = finish(run_py(*RUN, "seeds=[0,1]", "seed_processes=1", f"run_dir={batch_dir}"))
     finish(lone)
     folders = [batch_dir / "seed0", batch_dir / "seed1"]
     for folder in folders:
@@ -134,8 +143,9 @@ def test_a_batch_writes_the_folders_and_evaluations_of_its_lone_runs(tmp_path):
         assert (folder / "checkpoints" / "last" / META_FILE).is_file()
         config = OmegaConf.load(folder / "config.yaml")
         assert list(config.seeds) == [0, 1] and config.seed_run_dirs == [str(f) for f in folders]
+        assert summary_of(folder)["update_path"] == "seed_stacked_mlp" and summary_of(folder)["trained_together"] == [0, 1]
         summary = json.loads((folder / "summary.json").read_text())
-        assert summary["update_path"] == "seed_stacked_mlp" and summary["trained_with_seeds"] == [0, 1]
+        assert summary["trained_with_seeds"] == [0, 1]
     assert OmegaConf.load(folders[1] / "config.yaml").seed == 1
     assert_same_evaluations(folders[1], lone_dir)
     # The aggregate across seeds, mean and IQM, is printed at the end.
@@ -144,7 +154,7 @@ def test_a_batch_writes_the_folders_and_evaluations_of_its_lone_runs(tmp_path):
 
 def test_a_batch_stopped_by_sigterm_resumes_from_any_seed_folder(tmp_path):
     batch_dir, reference_dir = tmp_path / "stopped", tmp_path / "reference"
-    args = [*RUN, "seeds=[3,4]", "checkpoint.freq=100000"]
+    args = [*RUN, "seeds=[3,4]", "seed_processes=2", "checkpoint.freq=100000"]  # a process per seed, as on 2 cores
     reference = run_py(*args, f"run_dir={reference_dir}")
     process = run_py(*args, f"run_dir={batch_dir}")
     deadline = time.time() + 300
@@ -162,7 +172,7 @@ def test_a_batch_stopped_by_sigterm_resumes_from_any_seed_folder(tmp_path):
     finish(reference)
 
     stdout, _ = finish(run_py(f"resume={batch_dir / 'seed4'}", "progress_bar=false"))  # any seed's folder
-    assert "Resuming" in stdout and "Training seeds [3, 4] together" in stdout
+    assert "Resuming" in stdout and "Training seeds [3, 4] in 2 processes" in stdout
     for seed in (3, 4):
         assert_same_evaluations(batch_dir / f"seed{seed}", reference_dir / f"seed{seed}")
         sessions = (batch_dir / f"seed{seed}" / "provenance.jsonl").read_text().splitlines()

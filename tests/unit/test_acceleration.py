@@ -1,5 +1,7 @@
-"""The opt-in accelerations: bf16 autocast, torch.compile, and the CUDA-graph path's logic (run on the CPU)."""
+"""The accelerations: bf16 autocast, torch.compile (by default on a long CPU run), and the CUDA-graph path's logic
+(run on the CPU)."""
 
+import os
 import warnings
 
 import gymnasium as gym
@@ -309,3 +311,13 @@ def test_a_changed_setting_captures_the_graphs_again():
         setattr(model, name, value)
         model.train(gradient_steps=2, batch_size=32)
     assert len(captures) == 4
+
+
+def test_each_test_process_compiles_into_its_own_inductor_cache():
+    """Concurrent compiles of the pytest-xdist processes do not share one cache folder (tests/conftest.py)."""
+    from torch._inductor.runtime.cache_dir_utils import cache_dir
+
+    worker = os.environ.get("PYTEST_XDIST_WORKER")
+    if worker is None:
+        pytest.skip("one test process (no pytest-xdist worker): nothing shares the cache")
+    assert cache_dir().endswith(os.sep + f"pytest_{worker}")

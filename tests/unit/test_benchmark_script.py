@@ -90,6 +90,17 @@ def test_timing_puts_the_model_back_and_training_goes_on(throughput):
 def test_compiled_updates_are_not_replayed(throughput):
     assert throughput.InSequenceReplay.applies(_model(throughput))
     assert not throughput.InSequenceReplay.applies(TD3X("MlpPolicy", "Pendulum-v1", compile_update=True))
+    auto = _model(throughput)
+    auto.update_compiled = True  # compile_update=None (auto) compiled it at the warm-up (a long run's default)
+    assert not throughput.InSequenceReplay.applies(auto)
+
+
+def test_a_benchmark_model_has_the_defaults_of_the_run_it_stands_for(throughput):
+    """compile_update=None decides from the run's length: the benchmark's TD3X decides as in a run of --run-length
+    steps, so a 1M-step run's default (compiled on a CPU) is what it measures."""
+    long = throughput.as_part_of_a_run(TD3X("MlpPolicy", "Pendulum-v1", learning_starts=1000), 1_000_000)
+    short = throughput.as_part_of_a_run(TD3X("MlpPolicy", "Pendulum-v1", learning_starts=1000), 50_000)
+    assert long.compile_auto_min_steps == 0 and short.compile_auto_min_steps > 10**9
 
 
 @pytest.mark.parametrize(

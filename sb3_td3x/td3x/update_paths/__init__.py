@@ -11,6 +11,8 @@ assumes (``requirements(model)``, checked conservatively: when in doubt, the use
 ``"mlp"``                 :class:`~.mlp.MlpUpdate`: gradients written out by hand     13 hooks, the networks'
                                                                                       ``forward``, autograd
 ``"compiled_mlp"``        ``MlpUpdate``'s gradient functions, ``torch.compile``-d     as ``"mlp"``
+                          (``compile_update=True``, or by default on a CPU for a
+                          long run: :func:`~.compiled.why_not_compile`)
 ``"compiled"``            :class:`~.compiled.FunctionalCompiledUpdate`: the hooks     the optimizer steps,
                           compiled with ``torch.func`` gradients                      ``update_from_batch``
 ``"compiled_eager_backward"``  ``update_from_batch`` compiled as it is               ``gradient_step``

@@ -1,0 +1,195 @@
+"""``seeds=[...]`` on a CPU: the seeds trained in one process per core, every P-th seed in each.
+
+One process runs its Python (SB3's collection loop, the update's dispatch) on one core at a time, so on a CPU with P
+cores N seeds train fastest in P processes side by side, each a :class:`~sb3_td3x.SeedBatch` of every P-th seed with
+one torch thread (docs/performance.md: on 2 cores, two seeds in two processes trained 1.26x as fast as in one). A
+seed computes what its lone run computes however the seeds are grouped (bit for bit on a CPU), so the grouping is a
+speed setting only: ``seed_processes`` (null: one per core of the run, at most one per seed; 1: this process).
+
+This process (``run.py``'s) starts the others (``spawn``: each imports torch afresh) and waits. Each trains its seeds
+with :func:`~sb3_td3x.experiment.runner.train_seed_group`, in the seeds' own folders, which it owns (the lock) as a
+lone run does; every seed's ``config.yaml`` lists all the seeds and folders, so ``resume=`` with any of them
+continues them all, in processes again. This process then reports as one batch would: the aggregate table, or what
+stopped a seed (an interruption first). Stopping: SIGINT and SIGTERM (and submitit's signal) are passed on to the
+processes once, and each checkpoints its seeds; in a SLURM job the scheduler signals every process itself, so
+nothing is passed on. With ``report`` callbacks (a sweep's trials) the seeds train in one process, which reports.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import multiprocessing as mp
+import os
+import queue
+import signal
+import sys
+import traceback
+from collections.abc import Iterator
+from typing import Any
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from sb3_td3x.experiment import jobs
+from sb3_td3x.experiment.errors import ConfigError, RunFilesNotWritten, TrainingDiverged, TrainingInterrupted
+
+log = logging.getLogger(__name__)
+
+LOG_FORMAT = "[%(asctime)s][%(name)s][%(levelname)s] - %(message)s"  # Hydra's, as run.py's own lines
+
+
+def processes_for(cfg: DictConfig) -> int:
+    """How many processes train ``cfg.seeds``: ``seed_processes``, or (null) on a CPU one per core of this run (its
+    ``torch_threads`` when set, else the cores this process may use), on a GPU one; never more than the seeds."""
+    n_seeds = len(cfg.seeds)
+    if cfg.get("seed_processes") is not None:
+        return max(1, min(n_seeds, int(cfg.seed_processes)))
+    from stable_baselines3.common.utils import get_device
+
+    if get_device(str(cfg.device)).type != "cpu":
+        return 1
+    return max(1, min(n_seeds, int(cfg.torch_threads or jobs.available_cores())))
+
+
+def groups_of(n_seeds: int, processes: int) -> list[list[int]]:
+    """The seeds' indices each process trains: every ``processes``-th, so that seeds of any speed spread evenly."""
+    return [list(range(k, n_seeds, processes)) for k in range(processes)]
+
+
+def run_in_processes(cfg: DictConfig, how: str, statistic: str, processes: int) -> float:
+    """``cfg.seeds`` trained in ``processes`` processes (see the module's docstring); returns the seeds'
+    ``statistic`` of their final mean returns, or raises what stopped a seed, as one batch would."""
+    from sb3_td3x.experiment.run_folder import seed_run_dirs
+    from sb3_td3x.experiment.runner import check_batch_resumable, end_of_batch
+
+    seeds, dirs = [int(s) for s in cfg.seeds], seed_run_dirs(cfg)
+    check_batch_resumable(cfg, dirs)
+    groups = groups_of(len(seeds), processes)
+    threads = max(1, int(cfg.torch_threads or jobs.available_cores()) // processes)
+    log.info(
+        "Training seeds %s in %d processes of %d torch thread(s), one per core (seed_processes=%s; "
+        "seed_processes=1 trains them in this one): %s. Each seed computes what its lone run computes.",
+        seeds, processes, threads, cfg.get("seed_processes"),
+        "; ".join(f"seeds {[seeds[i] for i in group]}" for group in groups),
+    )  # fmt: skip
+    context = mp.get_context("spawn")
+    results = context.Queue()
+    config = OmegaConf.to_container(cfg, resolve=True)
+    children = [
+        context.Process(
+            target=_train_group, args=(config, how, group, threads, statistic, k, results), name=f"seeds-{k}"
+        )
+        for k, group in enumerate(groups)
+    ]
+    outcomes: dict[int, tuple[Any, ...]] = {}
+    with _passing_stops_on(children):
+        for child in children:
+            child.start()
+        while len(outcomes) < len(children):
+            try:
+                k, outcome = results.get(timeout=0.5)
+                outcomes[k] = outcome
+            except queue.Empty:
+                for k, child in enumerate(children):
+                    if k not in outcomes and child.exitcode is not None:
+                        with contextlib.suppress(queue.Empty):  # its result may still be on its way
+                            k2, outcome = results.get(timeout=2.0)
+                            outcomes[k2] = outcome
+                        if k not in outcomes:
+                            outcomes[k] = ("died", child.exitcode)
+        for child in children:
+            child.join()
+    finals: dict[int, float] = {}
+    errors: dict[int, BaseException] = {}
+    for k, outcome in sorted(outcomes.items()):
+        group_seeds = [seeds[i] for i in groups[k]]
+        if outcome[0] == "done":
+            finals.update(outcome[1])
+            errors.update({seed: _rebuilt(error) for seed, error in outcome[2].items()})
+        elif outcome[0] == "failed":
+            errors.update(dict.fromkeys(group_seeds, _rebuilt(outcome[1])))
+        else:  # died: killed (out of memory, SIGKILL) before it could say anything
+            errors.update(dict.fromkeys(group_seeds, RuntimeError(
+                f"the process training seeds {group_seeds} ended with exit code {outcome[1]} and no result; each "
+                f"seed's folder keeps its last checkpoint: continue with python run.py resume={dirs[0]}"
+            )))  # fmt: skip
+    return end_of_batch(seeds, dirs, finals, errors, statistic)
+
+
+@contextlib.contextmanager
+def _passing_stops_on(children: list[Any]) -> Iterator[None]:
+    """While the processes run, a stop signal to this one is passed on to them, once each (they checkpoint and
+    stop); in a SLURM job the scheduler signals them itself, so it is only noted here."""
+    previous: dict[int, Any] = {}
+    passed: set[int] = set()
+
+    @jobs.ours
+    def handle(signum: int, frame: Any) -> None:
+        jobs.note_signal(signum)
+        if jobs.current_job() is not None or signum in passed:
+            return
+        passed.add(signum)
+        for child in children:
+            if child.pid is not None and child.exitcode is None:
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(child.pid, signum)
+
+    for sig in jobs.stop_signals():
+        previous[sig] = signal.signal(sig, handle)
+        jobs.keep_handler(sig, previous[sig])
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+def _train_group(config: dict, how: str, indices: list[int], threads: int, statistic: str, k: int, results: Any) -> None:
+    """A process of :func:`run_in_processes`: its seeds trained with ``threads`` torch threads; the outcome put in
+    ``results`` as ``(k, outcome)``."""
+    from sb3_td3x.common.redaction import redact_log_records
+    from sb3_td3x.experiment.runner import train_seed_group
+
+    if jobs.current_job() is None:
+        os.setpgrp()  # a Ctrl+C at the terminal reaches run.py only, which passes it on once
+    logging.basicConfig(level=logging.INFO, format=LOG_FORMAT, stream=sys.stdout)
+    redact_log_records()
+    torch.set_num_threads(threads)
+    cfg = OmegaConf.create(config)
+    cfg.torch_threads = threads
+    try:
+        finals, errors = train_seed_group(cfg, how, indices, statistic)
+        outcome: tuple[Any, ...] = ("done", finals, {seed: _portable(error) for seed, error in errors.items()})
+    except BaseException as error:  # noqa: BLE001  (whatever it is, run.py reports it for these seeds)
+        outcome = ("failed", _portable(error))
+    results.put((k, outcome))
+    results.close()
+    results.join_thread()
+
+
+def _portable(error: BaseException) -> tuple[Any, ...]:
+    """An exception as plain values (the framework's errors take several arguments; pickling would lose them)."""
+    if isinstance(error, TrainingInterrupted):
+        return ("interrupted", error.signal_name, error.exit_code, error.num_timesteps, error.run_dir)
+    if isinstance(error, TrainingDiverged):
+        return ("diverged", error.what, error.value, error.num_timesteps)
+    if isinstance(error, (ConfigError, RunFilesNotWritten)):
+        return (type(error).__name__, str(error))
+    return ("other", "".join(traceback.format_exception(error)))
+
+
+def _rebuilt(portable: tuple[Any, ...]) -> BaseException:
+    kind, *values = portable
+    if kind == "interrupted":
+        return TrainingInterrupted(*values)
+    if kind == "diverged":
+        return TrainingDiverged(*values)
+    if kind == "ConfigError":
+        return ConfigError(values[0])
+    if kind == "RunFilesNotWritten":
+        return RunFilesNotWritten(values[0])
+    return RuntimeError(f"a seed process failed:\n{values[0]}")
+
+
+__all__ = ["groups_of", "processes_for", "run_in_processes"]
