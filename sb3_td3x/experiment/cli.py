@@ -23,7 +23,13 @@ from sb3_td3x.common.redaction import redact, redact_log_records
 from sb3_td3x.experiment import jobs
 from sb3_td3x.experiment.jobs import available_cores
 from sb3_td3x.experiment.checkpoints import seed_folders
-from sb3_td3x.experiment.errors import ConfigError, RunFilesNotWritten, TrainingDiverged, TrainingInterrupted
+from sb3_td3x.experiment.errors import (
+    ConfigError,
+    RunFilesNotWritten,
+    SeedProcessLost,
+    TrainingDiverged,
+    TrainingInterrupted,
+)
 from sb3_td3x.experiment.run_folder import check_new, check_resumable, config_for_resume
 from sb3_td3x.experiment.runner import run_experiment
 from sb3_td3x.experiment.schemas import CONFIG_GROUPS, whole_float_problems
@@ -31,6 +37,7 @@ from sb3_td3x.experiment.schemas import CONFIG_GROUPS, whole_float_problems
 EXIT_CONFIG_ERROR = 2
 EXIT_DIVERGED = 3
 EXIT_NOT_WRITTEN = 4  # a full disk, a quota: the run's files could not be written
+EXIT_SEED_PROCESS_LOST = 5  # seeds=[...]: a process training some seeds was killed (the others finished)
 
 
 def check_command_line(args: list[str], conf_dir: Path) -> None:
@@ -209,6 +216,8 @@ def main(cfg: DictConfig) -> float:
         _exit(str(error), error.exit_code)
     except RunFilesNotWritten as error:
         _exit(f"Error: {_one_paragraph(error)}", EXIT_NOT_WRITTEN)
+    except SeedProcessLost as error:
+        _exit(f"Error: {_one_paragraph(error)}", EXIT_SEED_PROCESS_LOST)
 
 
 def redact_hydra_records(hydra_cfg: DictConfig) -> None:

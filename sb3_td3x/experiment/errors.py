@@ -1,8 +1,8 @@
 """Errors the experiment framework raises on purpose.
 
 ``run.py`` turns each of them into a one-paragraph message and a non-zero exit status (2 for a bad config, 3 for a
-diverged run, 4 for files that could not be written, 128 + the signal for a stop); everything else is a bug and
-keeps its traceback.
+diverged run, 4 for files that could not be written, 5 for a killed seed process, 128 + the signal for a stop);
+everything else is a bug and keeps its traceback.
 """
 
 
@@ -37,6 +37,11 @@ class RunFilesNotWritten(RuntimeError):
 
     The message says what failed; the runner adds which checkpoint is intact and the command that continues.
     """
+
+
+class SeedProcessLost(RuntimeError):
+    """A process training some of ``seeds=[...]`` ended without a result (killed: out of memory, SIGKILL). Its seeds'
+    folders keep their last checkpoints; the message says how to continue."""
 
 
 class TrainingInterrupted(Exception):

@@ -32,7 +32,13 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from sb3_td3x.experiment import jobs
-from sb3_td3x.experiment.errors import ConfigError, RunFilesNotWritten, TrainingDiverged, TrainingInterrupted
+from sb3_td3x.experiment.errors import (
+    ConfigError,
+    RunFilesNotWritten,
+    SeedProcessLost,
+    TrainingDiverged,
+    TrainingInterrupted,
+)
 
 log = logging.getLogger(__name__)
 
@@ -110,9 +116,10 @@ def run_in_processes(cfg: DictConfig, how: str, statistic: str, processes: int) 
         elif outcome[0] == "failed":
             errors.update(dict.fromkeys(group_seeds, _rebuilt(outcome[1])))
         else:  # died: killed (out of memory, SIGKILL) before it could say anything
-            errors.update(dict.fromkeys(group_seeds, RuntimeError(
-                f"the process training seeds {group_seeds} ended with exit code {outcome[1]} and no result; each "
-                f"seed's folder keeps its last checkpoint: continue with python run.py resume={dirs[0]}"
+            errors.update(dict.fromkeys(group_seeds, SeedProcessLost(
+                f"The process training seeds {group_seeds} ended with exit code {outcome[1]} and no result (killed: "
+                f"out of memory, SIGKILL?); the other seeds went on. Each seed's folder keeps its last checkpoint: "
+                f"continue them all with python run.py resume={dirs[0]}"
             )))  # fmt: skip
     return end_of_batch(seeds, dirs, finals, errors, statistic)
 

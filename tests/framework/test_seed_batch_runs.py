@@ -7,6 +7,7 @@ from __future__ import annotations
 import csv
 import io
 import json
+import os
 import pickle
 import signal
 import subprocess
@@ -200,3 +201,65 @@ def test_bad_seeds_are_refused_with_a_message():
         [sys.executable, "run.py", *RUN, "seeds=[1,2]", "seed=5"], cwd=REPO, capture_output=True, text=True, timeout=120
     )
     assert done.returncode == 2 and "seed=5 is not one of seeds=[1, 2]" in done.stderr
+
+
+def test_a_killed_seed_process_is_one_paragraph_the_others_finish_and_resume_continues_it(tmp_path):
+    """seeds=[0,1] in two processes; the one training seed 1 is killed (SIGKILL, as the OOM killer does): seed 0
+    finishes, run.py says which seeds were lost and how to continue (exit 5), and resume= continues seed 1 from its
+    last checkpoint to the same evaluations as an uninterrupted run."""
+    args = [*RUN, "seeds=[0,1]", "seed_processes=2", "checkpoint.freq=150"]
+    reference = run_py(*args, f"run_dir={tmp_path / 'reference'}")
+    process = run_py(*args, f"run_dir={tmp_path / 'killed'}")
+    killed = tmp_path / "killed" / "seed1"
+    deadline = time.time() + 300
+    while not (killed / "evaluations.csv").is_file() or len(evaluations(killed)) < 2:
+        assert process.poll() is None and time.time() < deadline, "the run ended before it could be killed"
+        time.sleep(0.05)
+    owner = json.loads((killed / ".lock").read_text())["pid"]  # the process that owns seed 1's folder
+    assert owner != process.pid
+    os.kill(owner, signal.SIGKILL)
+    _, stderr = process.communicate(timeout=300)
+    assert process.returncode == 5, stderr[-3000:]
+    assert "Traceback" not in stderr and "The process training seeds [1] ended with exit code -9" in stderr
+    assert f"python run.py resume={tmp_path / 'killed' / 'seed0'}" in stderr
+    assert (tmp_path / "killed" / "seed0" / "summary.json").is_file()  # the other seed finished
+    assert not (killed / "summary.json").is_file()
+    finish(reference)
+    finish(run_py(f"resume={killed}", "progress_bar=false"))
+    for seed in (0, 1):
+        assert_same_evaluations(tmp_path / "killed" / f"seed{seed}", tmp_path / "reference" / f"seed{seed}")
+
+
+def test_seed_processes_one_per_core_on_a_cpu_at_most_one_per_seed(monkeypatch):
+    from sb3_td3x.experiment import jobs
+    from sb3_td3x.experiment.seed_processes import groups_of, processes_for
+
+    monkeypatch.setattr(jobs, "available_cores", lambda: 2)
+    assert processes_for(compose_config(["seeds=[0,1,2,3]", "device=cpu"])) == 2
+    assert processes_for(compose_config(["seeds=[0,1,2,3]", "device=cpu", "torch_threads=1"])) == 1
+    assert processes_for(compose_config(["seeds=[0,1,2,3]", "device=cpu", "seed_processes=3"])) == 3
+    assert processes_for(compose_config(["seeds=[0,1]", "device=cpu", "seed_processes=8"])) == 2
+    monkeypatch.setattr(jobs, "available_cores", lambda: 16)
+    assert processes_for(compose_config(["seeds=[0,1,2]", "device=cpu"])) == 3
+    assert groups_of(5, 2) == [[0, 2, 4], [1, 3]] and groups_of(2, 2) == [[0], [1]]
+
+
+def test_a_seed_process_error_crosses_to_run_py_whole():
+    from sb3_td3x.experiment.errors import ConfigError, TrainingDiverged, TrainingInterrupted
+    from sb3_td3x.experiment.seed_processes import _portable, _rebuilt
+
+    diverged = _rebuilt(_portable(TrainingDiverged("train/critic_loss", float("nan"), 812)))
+    assert isinstance(diverged, TrainingDiverged) and "became nan at step 812" in str(diverged)
+    stopped = _rebuilt(_portable(TrainingInterrupted("SIGTERM", 143, 300, "/runs/x/seed1")))
+    assert isinstance(stopped, TrainingInterrupted) and (stopped.exit_code, stopped.num_timesteps) == (143, 300)
+    assert isinstance(_rebuilt(_portable(ConfigError("bad"))), ConfigError)
+    other = _rebuilt(_portable(ZeroDivisionError("x")))
+    assert "ZeroDivisionError: x" in str(other)
+
+
+def test_seed_processes_is_checked():
+    done = subprocess.run(
+        [sys.executable, "run.py", *RUN, "seeds=[0,1]", "seed_processes=0"], cwd=REPO, capture_output=True, text=True,
+        timeout=120,
+    )
+    assert done.returncode == 2 and "seed_processes=0 must be >= 1 or null" in done.stderr
