@@ -1,8 +1,8 @@
 """Train TD3X on a gymnasium environment: ``python run.py algo=td3 env=ant``.
 
 With no overrides it trains TD3 on Pendulum-v1 for 10k steps (a couple of minutes on 2 CPU cores).
-Several seeds in one process, trained together: ``python run.py seeds=[0,1,2,3,4]``; in parallel processes:
-``python run.py -m seed=0,1,2,3,4``; continue a stopped run: ``python run.py resume=<run folder>``.
+Several seeds trained together (on a CPU, one process per core): ``python run.py seeds=[0,1,2,3,4]``; as separate
+jobs: ``python run.py -m seed=0,1,2,3,4``; continue a stopped run: ``python run.py resume=<run folder>``.
 See docs/experiments.md.
 """
 
