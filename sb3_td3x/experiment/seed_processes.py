@@ -13,6 +13,8 @@ continues them all, in processes again. This process then reports as one batch w
 stopped a seed (an interruption first). Stopping: SIGINT and SIGTERM (and submitit's signal) are passed on to the
 processes once, and each checkpoints its seeds; in a SLURM job the scheduler signals every process itself, so
 nothing is passed on. With ``report`` callbacks (a sweep's trials) the seeds train in one process, which reports.
+On a GPU the default is one process; ``seed_processes=N`` there runs N processes that share the GPU through CUDA MPS
+where the machine has it (:mod:`~sb3_td3x.experiment.mps`, as a multirun's jobs do).
 """
 
 from __future__ import annotations
@@ -89,7 +91,10 @@ def run_in_processes(cfg: DictConfig, how: str, statistic: str, processes: int) 
         for k, group in enumerate(groups)
     ]
     outcomes: dict[int, tuple[Any, ...]] = {}
-    with _passing_stops_on(children):
+    from sb3_td3x.experiment import mps
+
+    # seed_processes > 1 on a GPU (asked for: the GPU default is one process) shares it through CUDA MPS.
+    with mps.around_launch(processes, str(cfg.device), bool(cfg.get("mps", True)), say=log.info), _passing_stops_on(children):
         for child in children:
             child.start()
         while len(outcomes) < len(children):

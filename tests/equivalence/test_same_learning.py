@@ -9,9 +9,16 @@ from stable_baselines3.common.noise import NormalActionNoise
 from sb3_td3x import TD3X
 
 
-@pytest.mark.parametrize("n_envs", [1, 2])
-def test_seeded_learn_matches_sb3_td3(n_envs):
+@pytest.mark.parametrize(
+    ("n_envs", "long_run"), [(1, False), (2, False), (1, True)], ids=["1-env", "2-envs", "1-env-compiled-long-run"]
+)
+def test_seeded_learn_matches_sb3_td3(n_envs, long_run, monkeypatch):
+    """long_run: the default of a run of 100,000 training steps or more on a CPU (compile_update=None compiles
+    MlpUpdate's gradient functions), held to the same tolerance."""
     from stable_baselines3.common.env_util import make_vec_env
+
+    if long_run:
+        monkeypatch.setattr(TD3X, "compile_auto_min_steps", 0)
 
     kwargs = dict(
         learning_starts=100,
@@ -29,5 +36,6 @@ def test_seeded_learn_matches_sb3_td3(n_envs):
     td3x = TD3X("MlpPolicy", make_vec_env("Pendulum-v1", n_envs=n_envs, seed=3), **kwargs)
     td3x.learn(400)
     assert sb3._n_updates == td3x._n_updates > 100
+    assert td3x.update_path == ("compiled_mlp" if long_run else "mlp")
     for (name, expected), got in zip(sb3.policy.state_dict().items(), td3x.policy.state_dict().values()):
         th.testing.assert_close(got, expected, rtol=1e-4, atol=1e-5, msg=name)

@@ -169,7 +169,8 @@ def test_a_batch_stopped_by_sigterm_resumes_from_any_seed_folder(tmp_path):
     stopped_at = [
         json.loads((batch_dir / f"seed{s}" / "checkpoints" / "last" / META_FILE).read_text())["num_timesteps"] for s in (3, 4)
     ]
-    assert all(300 <= step < 600 for step in stopped_at), stopped_at
+    # Stopped mid-run: seed 4 after its second evaluation; seed 3, in its own process, wherever it was by then.
+    assert stopped_at[1] >= 300 and all(150 < step < 600 for step in stopped_at), stopped_at
     finish(reference)
 
     stdout, _ = finish(run_py(f"resume={batch_dir / 'seed4'}", "progress_bar=false"))  # any seed's folder

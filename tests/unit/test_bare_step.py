@@ -16,7 +16,8 @@ throughput = pytest.importorskip("throughput")
 def _trained(step_variant: int | None) -> TD3X:
     """A model past the benchmark's learning_starts, then 5 gradient steps: its own update, or a bare step."""
     model = throughput.make_model(
-        TD3X, "Pendulum-v1", 0, {"batch_size": 64, "buffer_size": 2_000, "policy_kwargs": {"net_arch": [32, 32]}}
+        TD3X, "Pendulum-v1", 0, {"batch_size": 64, "buffer_size": 2_000, "policy_kwargs": {"net_arch": [32, 32]}},
+        run_length=1_100,  # a short run's defaults: the eager MlpUpdate, the computation the bare step is
     )
     model.learn(1_100)
     if step_variant is not None:

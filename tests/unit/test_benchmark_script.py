@@ -22,7 +22,8 @@ def throughput():
 
 def _model(throughput, **kwargs) -> TD3X:
     model = throughput.make_model(
-        TD3X, "Pendulum-v1", 0, {"buffer_size": 2_000, "policy_kwargs": {"net_arch": [32, 32]}, **kwargs}
+        TD3X, "Pendulum-v1", 0, {"buffer_size": 2_000, "policy_kwargs": {"net_arch": [32, 32]}, **kwargs},
+        run_length=1_100,  # a short run's defaults: the eager update, which the replay is for
     )
     model.learn(1_100)  # past the benchmark's learning_starts (1000): the optimizers' states exist
     return model
