@@ -57,8 +57,8 @@ if [ "$part" = measure ]; then
   tail -n 4 "$OUT"/tests_cuda.txt; tail -n 30 "$OUT"/throughput.txt; tail -n 25 "$OUT"/seeds.txt
 elif [ "$part" = seeds16 ]; then
   # Issue 35's 16-seed table: every way of training 16 Ant seeds on the machine, the separate processes with and
-  # without CUDA MPS (benchmarks/seeds_scaling.py --mps both); SBX's processes where sbx-rl imports (its wheels and
-  # flax/optax/tensorflow-probability are not among .whl/'s yet: add them to scripts/gpu_wheels.sh).
+  # without CUDA MPS (benchmarks/seeds_scaling.py --mps both); SBX's processes where sbx-rl imports (its wheels,
+  # flax, optax and tfp-nightly, are among .whl/'s since scripts/gpu_wheels.sh fetches them; untried on the GPU image).
   modes="batched td3x_procs sb3_procs"
   python3 -c "import sbx" 2>/dev/null && modes="$modes sbx_procs"
   timeout 560 python3 benchmarks/seeds_scaling.py --env Ant-v5 --batch-size 256 --device cuda --seeds 16 \

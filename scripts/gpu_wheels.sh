@@ -29,6 +29,15 @@ binary=($(pin mujoco-core mujoco-studio glfw greenlet sqlalchemy websockets))  #
 pure=($(pin mujoco stable-baselines3 gymnasium farama-notifications pyopengl absl-py etils hydra-core omegaconf \
       antlr4-python3-runtime hydra-joblib-launcher optuna alembic colorlog mako pytest-timeout))
 "$py" -m pip wheel -q --no-deps -w .whl "${pure[@]}"
+# SBX's TD3 (the peer of the GPU tables) on the image's JAX: sbx-rl, flax, optax, tfp-nightly and what they import.
+# flax's checkpointing (orbax-checkpoint, tensorstore: 23 MB) is left out: SBX trains without it (checked here with
+# those modules blocked), and the carry holds 64 MiB in all.
+sbx_binary=($(pin msgpack dm-tree pyyaml))
+"$py" -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 --implementation cp "${platforms[@]}" \
+  -d .whl "${sbx_binary[@]}"
+sbx_pure=($(pin sbx-rl flax optax tfp-nightly treescope rich markdown-it-py mdurl pygments gast cloudpickle decorator six))
+"$py" -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 --implementation cp "${platforms[@]}" \
+  -d .whl "${sbx_pure[@]}"
 du -sh .whl
 # libEGL and friends for MuJoCo's EGL rendering (device README: the image has the NVIDIA driver's EGL, not the loader)
 grep -qx '/.gl/' "$exclude" || echo '/.gl/' >> "$exclude"
