@@ -77,7 +77,8 @@ def run_experiment(
     ``learning_curve.png``, ``summary.json`` and, with ``video=final``, ``video.gif``.
 
     With ``cfg.seeds`` (``seeds=[0,1,2]``), the seeds train together (:class:`~sb3_td3x.SeedBatch`; on a CPU in one
-    process per core, :mod:`~sb3_td3x.experiment.seed_processes`, unless ``report`` or ``report_seeds`` is given),
+    process per core, :mod:`~sb3_td3x.experiment.seed_processes`, unless ``report`` or ``report_seeds`` is given:
+    spawned, so a script that calls this does so under ``if __name__ == "__main__":``, or sets ``seed_processes=1``),
     each computing what its lone ``seed=`` run computes and writing the same run folder, at ``cfg.seed_run_dirs``
     (``run.py`` sets them: ``runs/<env>/<algo>/seed<s>/<date>``) or else ``<run_dir>/seed<s>``. The return value is
     then the ``seeds_aggregate`` ("mean" or "iqm") of the seeds' final mean returns.

@@ -11,8 +11,8 @@ with :func:`~sb3_td3x.experiment.runner.train_seed_group`, in the seeds' own fol
 lone run does; every seed's ``config.yaml`` lists all the seeds and folders, so ``resume=`` with any of them
 continues them all, in processes again. This process then reports as one batch would: the aggregate table, or what
 stopped a seed (an interruption first). Stopping: SIGINT and SIGTERM (and submitit's signal) are passed on to the
-processes once, and each checkpoints its seeds; in a SLURM job the scheduler signals every process itself, so
-nothing is passed on. With ``report`` callbacks (a sweep's trials) the seeds train in one process, which reports.
+processes, and each checkpoints its seeds; in a SLURM job the scheduler signals every process itself, so nothing is
+passed on. With ``report`` callbacks (a sweep's trials) the seeds train in one process, which reports.
 On a GPU the default is one process; ``seed_processes=N`` there runs N processes that share the GPU through CUDA MPS
 where the machine has it (:mod:`~sb3_td3x.experiment.mps`, as a multirun's jobs do).
 """
@@ -131,17 +131,17 @@ def run_in_processes(cfg: DictConfig, how: str, statistic: str, processes: int) 
 
 @contextlib.contextmanager
 def _passing_stops_on(children: list[Any]) -> Iterator[None]:
-    """While the processes run, a stop signal to this one is passed on to them, once each (they checkpoint and
-    stop); in a SLURM job the scheduler signals them itself, so it is only noted here."""
+    """While the processes run, a stop signal to this one is passed on to them (the first makes each checkpoint and
+    stop; a second Ctrl+C stops them at once, as it stops a lone run). They run in process groups of their own, so
+    this is the only way a signal reaches them; in a SLURM job they stay in this one's, the scheduler signals each
+    process itself, and the signal is only noted here."""
     previous: dict[int, Any] = {}
-    passed: set[int] = set()
 
     @jobs.ours
     def handle(signum: int, frame: Any) -> None:
         jobs.note_signal(signum)
-        if jobs.current_job() is not None or signum in passed:
+        if jobs.current_job() is not None:
             return
-        passed.add(signum)
         for child in children:
             if child.pid is not None and child.exitcode is None:
                 with contextlib.suppress(ProcessLookupError):
@@ -164,7 +164,8 @@ def _train_group(config: dict, how: str, indices: list[int], threads: int, stati
     from sb3_td3x.experiment.runner import train_seed_group
 
     if jobs.current_job() is None:
-        os.setpgrp()  # a Ctrl+C at the terminal reaches run.py only, which passes it on once
+        os.setpgrp()  # a Ctrl+C at the terminal reaches run.py only, which passes it on
+    _stop_when_orphaned()
     logging.basicConfig(level=logging.INFO, format=LOG_FORMAT, stream=sys.stdout)
     redact_log_records()
     torch.set_num_threads(threads)
@@ -178,6 +179,23 @@ def _train_group(config: dict, how: str, indices: list[int], threads: int, stati
     results.put((k, outcome))
     results.close()
     results.join_thread()
+
+
+def _stop_when_orphaned() -> None:
+    """SIGTERM to this process, once, when ``run.py``'s has ended (killed with SIGKILL, say): its seeds checkpoint
+    and stop instead of training on with nobody to report to. A thread watches the parent's pid (Linux's
+    ``PR_SET_PDEATHSIG`` was seen to signal twice here, and a second SIGTERM stops a run at once)."""
+    import threading
+    import time
+
+    parent = os.getppid()
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(0.5)
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    threading.Thread(target=watch, name="seed-process-orphan-watch", daemon=True).start()
 
 
 def _portable(error: BaseException) -> tuple[Any, ...]:

@@ -264,3 +264,28 @@ def test_seed_processes_is_checked():
         timeout=120,
     )
     assert done.returncode == 2 and "seed_processes=0 must be >= 1 or null" in done.stderr
+
+
+def test_seed_processes_whose_run_py_is_killed_checkpoint_stop_and_resume(tmp_path):
+    """run.py killed with SIGKILL (nothing of it runs again): its seed processes notice, checkpoint and stop rather
+    than train on unwatched, and resume= continues both seeds to the evaluations of an uninterrupted run."""
+    args = [*RUN, "seeds=[0,1]", "seed_processes=2", "checkpoint.freq=100000"]
+    reference = run_py(*args, f"run_dir={tmp_path / 'reference'}")
+    process = run_py(*args, f"run_dir={tmp_path / 'orphaned'}")
+    folders = [tmp_path / "orphaned" / f"seed{seed}" for seed in (0, 1)]
+    deadline = time.time() + 300
+    while not all((f / "evaluations.csv").is_file() and len(evaluations(f)) >= 2 for f in folders):
+        assert process.poll() is None and time.time() < deadline, "the run ended before it could be killed"
+        time.sleep(0.05)
+    owners = [json.loads((f / ".lock").read_text())["pid"] for f in folders]
+    process.kill()
+    process.communicate(timeout=60)
+    while any(Path(f"/proc/{pid}").exists() for pid in owners):  # they stop on their own
+        assert time.time() < deadline + 60, "the seed processes went on after run.py was killed"
+        time.sleep(0.1)
+    stopped_at = [json.loads((f / "checkpoints" / "last" / META_FILE).read_text())["num_timesteps"] for f in folders]
+    assert all(300 <= step < 600 for step in stopped_at), stopped_at
+    finish(reference)
+    finish(run_py(f"resume={folders[0]}", "progress_bar=false"))
+    for seed, folder in zip((0, 1), folders):
+        assert_same_evaluations(folder, tmp_path / "reference" / f"seed{seed}")
