@@ -160,3 +160,32 @@ def test_the_replay_buffer_is_saved_as_its_filled_rows_and_loaded_whole(tmp_path
     if not optimize_memory_usage:
         assert (after.next_observations == before.next_observations).all()
         assert (after.timeouts == before.timeouts).all()
+
+
+class _StopHere(Exception):
+    pass
+
+
+def test_a_compiled_run_stopped_and_resumed_is_the_run_never_stopped(tmp_path):
+    """The compiled update (what compile_update=None picks for a long run on a CPU; asked for here, the run being
+    short) is deterministic through a stop and a resume: the same evaluations and weights, to the bit, as a run
+    never stopped (the stop is a report that raises, which checkpoints as a signal does)."""
+    from sb3_td3x.experiment.runner import run_experiment
+
+    overrides = [*RUN, "logger=none", "algo.compile_update=true"]
+    run_experiment(compose_config([*overrides, f"run_dir={tmp_path / 'reference'}"]))
+
+    def stop_at_1000(step: int, value: float) -> None:
+        if step >= 1000:
+            raise _StopHere(step)
+
+    stopped = tmp_path / "stopped"
+    with pytest.raises(_StopHere):
+        run_experiment(compose_config([*overrides, f"run_dir={stopped}"]), report=stop_at_1000)
+    assert json.loads((stopped / "checkpoints" / "last" / META_FILE).read_text())["num_timesteps"] == 1000
+    run_experiment(compose_config([*overrides, f"resume={stopped}"]))
+    summary = json.loads((stopped / "summary.json").read_text())
+    assert summary["update_path"] == "compiled_mlp"
+    assert curve(stopped) == curve(tmp_path / "reference")
+    for name, tensor in policy_weights(tmp_path / "reference").items():
+        torch.testing.assert_close(policy_weights(stopped)[name], tensor, rtol=0, atol=0, msg=name)
