@@ -171,8 +171,8 @@ class ExperimentConfig:
     seed: int = II("td3x.first_seed:${seeds}")  # 0, or with seeds=[...] the first of them (its run folder is Hydra's)
     # Several seeds trained together in this process (sb3_td3x.SeedBatch), each as its lone seed= run: seeds=[0,1,2]
     seeds: list[int] | None = None
-    # How many processes train them: null (auto) one per core of the run on a CPU (every P-th seed each: a seed
-    # computes what its lone run computes however they are grouped), one on a GPU; a number: that many
+    # How many processes train them: null (auto) one per core of the run, at most one per seed (every P-th seed
+    # each: a seed computes what its lone run computes however they are grouped; on a GPU under CUDA MPS)
     seed_processes: int | None = None
     # Set by the run (not by hand): each seed's run folder, saved in every seed's config.yaml so that resume=<any
     # seed's folder> resumes the whole batch

@@ -242,6 +242,7 @@ def test_seed_processes_one_per_core_on_a_cpu_at_most_one_per_seed(monkeypatch):
     assert processes_for(compose_config(["seeds=[0,1]", "device=cpu", "seed_processes=8"])) == 2
     monkeypatch.setattr(jobs, "available_cores", lambda: 16)
     assert processes_for(compose_config(["seeds=[0,1,2]", "device=cpu"])) == 3
+    assert processes_for(compose_config(["seeds=[0,1,2]", "device=cuda"])) == 3  # the same rule on a GPU (under MPS)
     assert groups_of(5, 2) == [[0, 2, 4], [1, 3]] and groups_of(2, 2) == [[0], [1]]
 
 

@@ -180,3 +180,35 @@ def test_seed_batch_on_the_gpu_computes_the_lone_runs():
         for (name, a), b in zip(alone.policy.state_dict().items(), model.policy.state_dict().values()):
             th.testing.assert_close(b, a, rtol=1e-4, atol=1e-5, msg=lambda m, name=name, i=i: f"seed {i} {name}: {m}")
     assert max_difference(lone[0], lone[1]) > 1e-2  # the seeds differ: the comparison can fail
+
+
+def test_seeds_on_a_gpu_run_in_processes_each_its_lone_run(tmp_path):
+    """``python run.py seeds=[0,1] device=cuda``: one process per seed (the machine has the cores), sharing the GPU
+    through CUDA MPS where the machine has it; each seed's evaluations are those of its lone ``seed=`` run on the GPU
+    (to float rounding: a GPU's reductions need not repeat bit for bit)."""
+    import csv
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    repo = Path(__file__).resolve().parents[2]
+    run = ["debug=smoke", "env=pendulum", "total_timesteps=600", "algo.learning_starts=150", "eval.freq=300",
+           "algo.net_arch=[32,32]", "logger=none", "progress_bar=false", "device=cuda"]
+
+    def run_py(*args: str) -> str:
+        done = subprocess.run([sys.executable, "run.py", *run, *args], cwd=repo, capture_output=True, text=True, timeout=600)
+        assert done.returncode == 0, done.stderr[-3000:]
+        return done.stdout + done.stderr
+
+    output = run_py("seeds=[0,1]", "seed_processes=2", f"run_dir={tmp_path / 'batch'}")
+    assert "in 2 processes" in output
+    run_py("seed=1", f"run_dir={tmp_path / 'lone1'}")
+
+    def returns(folder: Path) -> list[float]:
+        with open(folder / "evaluations.csv") as file:
+            return [float(row["mean_return"]) for row in csv.DictReader(file)]
+
+    summary = json.loads((tmp_path / "batch" / "seed1" / "summary.json").read_text())
+    assert summary["trained_together"] == [1] and summary["update_path"] == "cuda_graph"
+    np.testing.assert_allclose(returns(tmp_path / "batch" / "seed1"), returns(tmp_path / "lone1"), rtol=1e-3, atol=1e-2)
