@@ -175,8 +175,8 @@ class TD3X(OffPolicyAlgorithm):
     }
     policy: TD3XPolicy
     #: ``compile_update=None`` (auto) compiles a run of at least this many training steps (``total_timesteps`` less
-    #: ``learning_starts``): on the CPUs measured the compiled update saves 0.2 to 0.3 ms per step and its
-    #: compilation costs 3 to 16 s (docs/performance.md).
+    #: ``learning_starts``): on the CPUs measured the compiled update saves 0.3 to 0.5 ms per step (Hopper-v5,
+    #: 400-300 networks) and its compilation costs 3 to 16 s (docs/performance.md).
     compile_auto_min_steps: ClassVar[int] = 100_000
 
     def __init__(
