@@ -4,8 +4,9 @@
 # tool's run with
 #   command: bash scripts/gpu_session.sh measure     carry: [".whl", ".gl"]     timeout_s: 600
 #   command: bash scripts/gpu_session.sh suite       carry: [".whl", ".gl"]     timeout_s: 600   (right after: still warm)
-# measure: the GPU test layer (tests/gpu: cuda_graph replays against eager steps, TD3X against SB3 on the GPU, the
-#          seed batch on the GPU), TD3X's default (auto: CUDA graphs for a stock model) and cuda_graph=False (eager)
+# measure: `python run.py env=ant`'s update path (graphs by default), the GPU test layer (tests/gpu: cuda_graph
+#          replays against eager steps, TD3X against SB3 on the GPU, the seed batch and seeds=[...] in processes on
+#          the GPU), TD3X's default (auto: CUDA graphs for a stock model) and cuda_graph=False (eager)
 #          against SB3's TD3 (Ant-v5, HalfCheetah-v5), and
 #          the many-seeds benchmark (SeedBatch against separate TD3X and SB3 processes, up to 16 seeds).
 # sb3_seeds: 16 separate SB3 processes on the GPU, the many-seeds baseline that measure's time limit leaves out.
@@ -35,6 +36,12 @@ export PYTHONPATH=/tmp/site:$PWD MUJOCO_GL=egl PYTHONUNBUFFERED=1
 left() { echo $(( ${1} - (SECONDS - start) )); }  # seconds left of this part's budget
 
 if [ "$part" = measure ]; then
+  # 0. `python run.py env=ant` takes the graph path by itself on the GPU (issue 35): a short run with the env's own
+  # settings (10k random steps, then 300 gradient steps); its update line goes to $OUT (the run folder stays in /tmp).
+  timeout 90 python3 run.py env=ant total_timesteps=10300 eval.freq=100000 logger=none progress_bar=false \
+    run_dir=/tmp/ant_default > /tmp/ant_default.txt 2>&1
+  echo "run.py env=ant rc=$?; $(grep -o 'update: [a-z_]* ([^;]*' /tmp/ant_default.txt | head -1)" > "$OUT/ant_default.txt"
+  cat "$OUT/ant_default.txt"
   # 1. The GPU test layer, then every test that names CUDA, a device or graphs.
   timeout 170 python3 -m pytest -q -p no:cacheprovider -n 6 --timeout 160 -rs tests/gpu \
     tests/unit/test_acceleration.py tests/drop_in/test_drop_in_predict.py tests/drop_in/test_drop_in_save_load.py \
