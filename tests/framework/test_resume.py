@@ -22,8 +22,9 @@ from sb3_td3x.experiment.schemas import compose_config
 
 REPO = Path(__file__).resolve().parents[2]
 # 2000 steps of InvertedPendulum-v5 with small networks, evaluated every 500 steps; the only checkpoint before
-# the end is the one SIGTERM writes.
-RUN = ["debug=smoke", "env=inverted_pendulum", "checkpoint.freq=100000", "progress_bar=false"]
+# the end is the one SIGTERM writes. One torch thread: two runs side by side, beside the other test worker's (more
+# threads than cores made this test take 69 to 186 s in the suite, 19 s alone).
+RUN = ["debug=smoke", "env=inverted_pendulum", "checkpoint.freq=100000", "progress_bar=false", "torch_threads=1"]
 
 
 def run_py(*args: str, **kwargs) -> subprocess.Popen:

@@ -28,6 +28,7 @@ REPO = Path(__file__).resolve().parents[2]
 # batched update equals the lone one to float rounding, and TD3 on Pendulum magnifies rounding as training goes on
 # (measured: relative differences of 1e-8 in the mean return after 300 updates, 1e-5 after 600, 1e-2 after 900).
 RUN = [
+    "torch_threads=1",  # runs side by side beside the other test worker's: no more threads than cores
     "debug=smoke",
     "env=pendulum",
     "total_timesteps=600",
