@@ -16,11 +16,13 @@ def scaling():
     spec = importlib.util.spec_from_file_location("seeds_scaling", _PATH)
     module = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = module  # its dataclass looks its module up while it is built
+    sys.path.insert(0, str(_PATH.parent))  # as when it runs as a script: it imports throughput.py beside it
     try:
         spec.loader.exec_module(module)
         yield module
     finally:
         del sys.modules[spec.name]
+        sys.path.remove(str(_PATH.parent))
 
 
 _BAD = [
