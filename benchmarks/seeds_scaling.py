@@ -380,7 +380,7 @@ def cpu_model() -> str:
 
 
 def machine_info(device: str) -> dict:
-    from sb3_td3x.experiment.cli import available_cores
+    from sb3_td3x.experiment.jobs import available_cores
 
     info = {
         "processor": platform.processor() or platform.machine(),
@@ -411,7 +411,7 @@ def git_commit() -> dict:
 
 def parse_arguments(argv: list[str] | None = None) -> argparse.Namespace:
     """The command line, checked: a clear ``parser.error`` (exit 2) for what would fail later, in a worker."""
-    from sb3_td3x.experiment.cli import available_cores
+    from sb3_td3x.experiment.jobs import available_cores
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--env", default="Hopper-v5")

@@ -21,7 +21,6 @@ from omegaconf.errors import OmegaConfBaseException
 
 from sb3_td3x.common.redaction import redact, redact_log_records
 from sb3_td3x.experiment import jobs
-from sb3_td3x.experiment.jobs import available_cores
 from sb3_td3x.experiment.checkpoints import seed_folders
 from sb3_td3x.experiment.errors import (
     ConfigError,
@@ -140,7 +139,7 @@ def shared_gpu(args: list[str], conf_dir: Path) -> contextlib.AbstractContextMan
     parallel = combinations
     if launcher != "submitit_local":
         n_jobs = n_jobs if n_jobs is not None else (-1 if launcher == "joblib_cores" else 10)  # the plugin's default: 10
-        parallel = min(combinations, jobs_at_once(n_jobs, available_cores()))
+        parallel = min(combinations, jobs_at_once(n_jobs, jobs.available_cores()))
     try:
         cfg = compose_config(plain, conf_dir)
     except Exception:  # noqa: BLE001  (a composition error is reported by Hydra itself)
@@ -164,7 +163,7 @@ def default_threads(multirun: bool, launcher: DictConfig | dict) -> int | None:
     if launcher.get("cpus_per_task") is not None:
         return int(launcher["cpus_per_task"])
     if "n_jobs" in launcher:
-        return threads_per_job(launcher.get("n_jobs"), available_cores())
+        return threads_per_job(launcher.get("n_jobs"), jobs.available_cores())
     return None
 
 

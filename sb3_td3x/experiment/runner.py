@@ -62,6 +62,8 @@ from sb3_td3x.td3x.seed_batch import SeedBatch, acting_as, current_seed
 
 log = logging.getLogger(__name__)
 
+LOG_FORMAT = "[%(asctime)s][%(name)s][%(levelname)s] - %(message)s"  # Hydra's, as run.py's own lines
+
 
 
 def run_experiment(
@@ -624,7 +626,7 @@ def _seed_log_file(run_dir: Path, index: int) -> logging.Handler | None:
         if isinstance(existing, logging.FileHandler) and Path(existing.baseFilename).resolve() == path:
             return None
     handler = logging.FileHandler(path)
-    handler.setFormatter(logging.Formatter("[%(asctime)s][%(name)s][%(levelname)s] - %(message)s"))
+    handler.setFormatter(logging.Formatter(LOG_FORMAT))
     handler.addFilter(_SeedFilter(index))
     logging.getLogger().addHandler(handler)
     return handler

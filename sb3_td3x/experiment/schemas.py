@@ -169,7 +169,7 @@ class ExperimentConfig:
     checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
     video: VideoConfig | None = None
     seed: int = II("td3x.first_seed:${seeds}")  # 0, or with seeds=[...] the first of them (its run folder is Hydra's)
-    # Several seeds trained together in this process (sb3_td3x.SeedBatch), each as its lone seed= run: seeds=[0,1,2]
+    # Several seeds trained together (sb3_td3x.SeedBatch, in seed_processes processes), each as its lone seed= run
     seeds: list[int] | None = None
     # How many processes train them: null (auto) one per core of the run, at most one per seed (every P-th seed
     # each: a seed computes what its lone run computes however they are grouped; on a GPU under CUDA MPS)

@@ -45,8 +45,6 @@ from sb3_td3x.experiment.errors import (
 
 log = logging.getLogger(__name__)
 
-LOG_FORMAT = "[%(asctime)s][%(name)s][%(levelname)s] - %(message)s"  # Hydra's, as run.py's own lines
-
 
 def processes_for(cfg: DictConfig) -> int:
     """How many processes train ``cfg.seeds``: ``seed_processes``, or (null) one per core of this run (its
@@ -55,7 +53,12 @@ def processes_for(cfg: DictConfig) -> int:
     n_seeds = len(cfg.seeds)
     if cfg.get("seed_processes") is not None:
         return max(1, min(n_seeds, int(cfg.seed_processes)))
-    return max(1, min(n_seeds, int(cfg.torch_threads or jobs.available_cores())))
+    return max(1, min(n_seeds, _run_cores(cfg)))
+
+
+def _run_cores(cfg: DictConfig) -> int:
+    """The cores of this run: its ``torch_threads`` when set, else the cores this process may use."""
+    return int(cfg.torch_threads or jobs.available_cores())
 
 
 def groups_of(n_seeds: int, processes: int) -> list[list[int]]:
@@ -72,7 +75,7 @@ def run_in_processes(cfg: DictConfig, how: str, statistic: str, processes: int) 
     seeds, dirs = [int(s) for s in cfg.seeds], seed_run_dirs(cfg)
     check_batch_resumable(cfg, dirs)
     groups = groups_of(len(seeds), processes)
-    threads = max(1, int(cfg.torch_threads or jobs.available_cores()) // processes)
+    threads = max(1, _run_cores(cfg) // processes)
     log.info(
         "Training seeds %s in %d processes of %d torch thread(s), one per core (seed_processes=%s; "
         "seed_processes=1 trains them in this one): %s. Each seed computes what its lone run computes.",
@@ -159,7 +162,7 @@ def _train_group(config: dict, how: str, indices: list[int], threads: int, stati
     """A process of :func:`run_in_processes`: its seeds trained with ``threads`` torch threads; the outcome put in
     ``results`` as ``(k, outcome)``."""
     from sb3_td3x.common.redaction import redact_log_records
-    from sb3_td3x.experiment.runner import train_seed_group
+    from sb3_td3x.experiment.runner import LOG_FORMAT, train_seed_group
 
     if jobs.current_job() is None:
         os.setpgrp()  # a Ctrl+C at the terminal reaches run.py only, which passes it on

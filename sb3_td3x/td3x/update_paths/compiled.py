@@ -53,7 +53,7 @@ def why_no_cpu_compiler() -> str | None:
         from torch._inductor.cpp_builder import get_cpp_compiler
 
         get_cpp_compiler()
-    except Exception as error:  # torch raises its own error types, which differ between versions
+    except Exception as error:  # noqa: BLE001  (torch raises its own error types, which differ between versions)
         return f"no C++ compiler for torch.compile's CPU backend ({type(error).__name__}: {str(error).strip()[:200]})"
     return None
 
@@ -76,13 +76,17 @@ def why_not_compile(model: TD3X) -> str | None:
         return "mlp_update=False"
     if (why := MlpUpdate.why_not(model)) is not None:
         return f"the hooks run as written ({why})"
-    steps, least = training_steps(model), int(model.compile_auto_min_steps)
-    if steps < least:
+    if not long_enough(model):
         return (
-            f"a run of {steps:,} training steps: compiling ({COMPILE_COST}) pays for itself from {least:,} "
-            "(compile_update=True compiles any run)"
+            f"a run of {training_steps(model):,} training steps: compiling ({COMPILE_COST}) pays for itself from "
+            f"{int(model.compile_auto_min_steps):,} (compile_update=True compiles any run)"
         )
     return why_no_cpu_compiler()
+
+
+def long_enough(model: TD3X) -> bool:
+    """Whether the run is long enough for auto to compile: ``model.compile_auto_min_steps`` training steps or more."""
+    return training_steps(model) >= model.compile_auto_min_steps
 
 
 def decide_compile(model: TD3X) -> bool:
@@ -108,7 +112,7 @@ def compile_watch(model: TD3X) -> tuple[Any, bool]:
     """What :func:`decide_compile` decides from, in short (read at every ``train()`` call, so cheap): the request,
     and for auto whether the run is long enough. When it changes, the update is chosen again."""
     request = model.compile_update
-    return request, request is None and training_steps(model) >= model.compile_auto_min_steps
+    return request, request is None and long_enough(model)
 
 
 def compiled_step(update: Callable[[Any, bool], Infos]) -> Callable[[Any, bool], Infos]:
