@@ -206,11 +206,16 @@ def seed_run_dirs(cfg: DictConfig) -> list[Path]:
     the seed folder ``cfg.resume``), else ``<run_dir>/seed<s>``."""
     if cfg.seed_run_dirs is not None:
         return [Path(d) for d in cfg.seed_run_dirs]
-    if cfg.resume is not None and (Path(cfg.resume) / CONFIG_FILE).is_file():
-        saved = OmegaConf.load(Path(cfg.resume) / CONFIG_FILE).get("seed_run_dirs")
-        if saved is not None and len(saved) == len(cfg.seeds):
-            return [Path(d) for d in saved]
-    return seed_folders(cfg.run_dir, cfg.seeds)
+    saved = None if cfg.resume is None else saved_seed_run_dirs(Path(cfg.resume), len(cfg.seeds))
+    return saved if saved is not None else seed_folders(cfg.run_dir, cfg.seeds)
+
+
+def saved_seed_run_dirs(seed_folder: Path, n_seeds: int) -> list[Path] | None:
+    """Every seed's folder, as listed in the ``config.yaml`` of one of them (each lists all); None where it has none."""
+    if not (seed_folder / CONFIG_FILE).is_file():
+        return None
+    saved = OmegaConf.load(seed_folder / CONFIG_FILE).get("seed_run_dirs")
+    return [Path(d) for d in saved] if saved is not None and len(saved) == n_seeds else None
 
 
 # The owner ------------------------------------------------------------------------------------------------------------
@@ -221,6 +226,7 @@ class Start:
     run_dir: Path
     resume: Path | None
     how: str
+    seed_run_dirs: list[Path] | None = None  # a requeued batch's seed folders, as its first start named them
 
 
 def where_to_start(cfg: DictConfig) -> Start:
@@ -229,15 +235,32 @@ def where_to_start(cfg: DictConfig) -> Start:
     if cfg.resume is not None:
         return Start(Path(cfg.resume), Path(cfg.resume), RESUMED)
     run_dir = Path(cfg.run_dir)
+    if cfg.seeds is not None:
+        return _where_a_batch_starts(cfg, run_dir)
     found = requeued_folder(run_dir)
     if found is None:
         return Start(run_dir, None, NEW)
-    if cfg.seeds is not None:  # a batch: its folders are the seeds' (seed_run_dirs); any checkpoint resumes the batch
-        dirs = seed_run_dirs(OmegaConf.merge(cfg, {"run_dir": str(found)}))
-        has_checkpoint = any(find_checkpoint(checkpoint_dir(d, LAST)) is not None for d in dirs)
-    else:
-        has_checkpoint = find_checkpoint(checkpoint_dir(found, LAST)) is not None
+    has_checkpoint = find_checkpoint(checkpoint_dir(found, LAST)) is not None
     return Start(found, found if has_checkpoint else None, REQUEUED if has_checkpoint else RESTARTED)
+
+
+def _where_a_batch_starts(cfg: DictConfig, run_dir: Path) -> Start:
+    """A batch trains in its seeds' folders, not in ``run_dir`` (which is the first seed's folder, or, with a
+    ``run_dir=`` of the user's, their parent). A requeued job finds the first seed's folder it trained in (the one
+    named now, or its dated sibling), whose ``config.yaml`` lists every seed's folder; any checkpoint resumes the
+    batch."""
+    named = seed_run_dirs(cfg)
+    found = requeued_folder(named[0]) if named else None  # seeds=[]: check_config refuses it, with a message
+    if found is None:
+        return Start(run_dir, None, NEW)
+    dirs = saved_seed_run_dirs(found, len(named)) or named
+    has_checkpoint = any(find_checkpoint(checkpoint_dir(d, LAST)) is not None for d in dirs)
+    return Start(
+        found if run_dir == named[0] else run_dir,  # where Hydra's folder is the first seed's: the one found
+        found if has_checkpoint else None,
+        REQUEUED if has_checkpoint else RESTARTED,
+        dirs,
+    )
 
 
 class RunFolder:

@@ -110,6 +110,8 @@ def run_experiment(
             start.run_dir,
         )
     cfg.run_dir, cfg.resume = str(start.run_dir), (str(start.resume) if start.resume is not None else None)
+    if start.seed_run_dirs is not None:
+        cfg.seed_run_dirs = [str(d) for d in start.seed_run_dirs]
     check_config(cfg)
     if seeds_aggregate not in STATISTICS:
         raise ConfigError(f"seeds_aggregate={seeds_aggregate!r} must be one of {', '.join(STATISTICS)}")

@@ -119,3 +119,56 @@ def test_a_requeued_batch_job_finds_its_dated_folder_by_its_job_id(slurm, tmp_pa
     assert [s["start"] for s in sessions] == ["new", "requeue"] and sessions[1]["job"]["restarts"] == 1
     assert json.loads((first[0] / "summary.json").read_text())["total_timesteps"] == 4000
     assert (first[0] / ".hydra" / "requeued_1").is_dir()
+
+
+@pytest.mark.parametrize("dated", [False, True], ids=["run_dir", "dated_seed_folders"])
+def test_a_requeued_job_of_seeds_in_processes_resumes_them_all_bit_identical(slurm, tmp_path, dated):
+    """``sbatch --cpus-per-task=2`` of ``run.py seeds=[0,1]``: the job's two cores give two seed processes, which
+    SLURM signals itself at the requeue (nothing is passed on: one SIGTERM each); each checkpoints, the job starts
+    again, finds the seeds' folders by the first seed's (``<run_dir>/seed<s>``, or ``seed<s>/<time>`` named anew by
+    the clock at the restart: the job's earlier ones), resumes both in processes, and each seed ends with the weights
+    and evaluations of a run never stopped."""
+    run = [*SMOKE, "seeds=[0,1]", "total_timesteps=4000", "checkpoint.freq=1000"]
+    runs = tmp_path / "runs"
+    run_dir = f"{runs}/seed0/${{now:%H-%M-%S}}" if dated else f"{runs}"
+    folders = (lambda: [next(iter((runs / f"seed{s}").iterdir()), None) for s in (0, 1)]) if dated else (
+        lambda: [runs / f"seed{s}" for s in (0, 1)])  # fmt: skip
+    script = tmp_path / "job.sh"
+    script.write_text(
+        "#!/bin/bash\n"
+        f"#SBATCH --cpus-per-task=2 --output={tmp_path}/job_%j.out --open-mode=append --job-name=seeds\n"
+        f"cd {REPO}\n"
+        f"exec {python()} run.py {' '.join(run)} 'run_dir={run_dir}'\n"
+    )
+    reference = subprocess.Popen(  # never stopped: the same two processes of one thread, on this machine
+        [python(), "run.py", *run, "torch_threads=2", f"run_dir={tmp_path / 'reference'}"],
+        cwd=REPO, env=slurm, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    done = subprocess.run(["sbatch", "--parsable", str(script)], env=slurm, capture_output=True, text=True, check=True)
+    job_id = done.stdout.strip().split(";")[0]
+
+    def both_checkpointed() -> bool:
+        dirs = [d for d in folders() if d is not None] if all((runs / f"seed{s}").is_dir() for s in (0, 1)) else []
+        return len(dirs) == 2 and all((d / "checkpoints" / "last" / "meta.json").is_file() for d in dirs)
+
+    try:
+        wait_for(both_checkpointed, "both seeds' first checkpoints", 300)
+        requeue_now(job_id)
+        wait_for(lambda: job_fields(job_id).get("JobState") in ("COMPLETED", "FAILED", "CANCELLED"), "the job's end", 300)
+        assert reference.wait(timeout=300) == 0, reference.communicate()[1][-4000:]
+    finally:
+        subprocess.run(["scancel", job_id], capture_output=True)
+        reference.kill()
+    log = (tmp_path / f"job_{job_id}.out").read_text()
+    assert job_fields(job_id)["JobState"] == "COMPLETED", log[-3000:]
+    assert log.count("in 2 processes") == 2, log[-3000:]  # at the first start and at the requeue
+    if dated:
+        assert [len(list((runs / f"seed{s}").iterdir())) for s in (0, 1)] == [1, 1], "one folder per seed, continued"
+    for seed, run_dir_of_seed in zip((0, 1), folders()):
+        reference_dir = tmp_path / "reference" / f"seed{seed}"
+        sessions = _sessions(run_dir_of_seed)
+        assert [s["start"] for s in sessions] == ["new", "requeue"] and sessions[1]["job"]["job_id"] == job_id
+        assert 1000 <= sessions[1]["at_step"] < 4000
+        assert evaluations(run_dir_of_seed) == evaluations(reference_dir)
+        mine, theirs = tensors(run_dir_of_seed), tensors(reference_dir)
+        assert mine.keys() == theirs.keys() and all(torch.equal(mine[k], theirs[k]) for k in mine), seed
