@@ -20,7 +20,7 @@ import ctypes.util
 import functools
 import os
 import platform
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
 import torch as th
@@ -120,3 +120,14 @@ def flush_denormals(enabled: bool = True) -> Iterator[None]:
         yield
     finally:
         fenv.set_all(before)
+
+
+def same_fp_environment() -> Callable[[], None]:
+    """A function that gives the thread it runs on the calling thread's floating-point environment (its FTZ and DAZ
+    bits, its rounding mode): for worker threads that must compute what the calling thread would (a thread starts
+    with the process's default environment, not its creator's)."""
+    fenv = _team_fenv()
+    if fenv is None:
+        return lambda: None
+    env = fenv.get()
+    return lambda: fenv.fesetenv(env)  # type: ignore[no-any-return]

@@ -14,6 +14,15 @@ through one :class:`~.update_paths.mlp.MlpUpdate` of all their models (``"seed_s
 one of them, else through each model's own ``train()`` (``"per_seed"``, with the reason). On a CPU seed ``i`` then
 computes its lone run's numbers bit for bit; on a GPU, where the seeds share each product, to float rounding.
 
+**Collection.** The seeds collect side by side, in ``collect_threads`` threads (default: one per torch thread of the
+process, so none besides the caller's with one thread): MuJoCo's step and torch's kernels release Python's lock, so
+the seeds' environments step in parallel. Only seeds whose round code draws nothing from the global generators
+(see *Random numbers*) collect in threads, the others after them in the caller's thread, one by one. A thread starts with the
+caller's floating-point environment, and each seed's code runs as its lone run's, so a seed computes the same bits
+in a thread. On a GPU (``batched_actions``) pi(s) of all seeds is computed at the start of a round in one batched
+product per layer, the actors' weights stacked (:func:`~.update_paths.exploration.prefetch_actions`; a seed whose
+observation, step count or actor changed since computes its own); each seed's exploration noise is its own draw.
+
 **Random numbers.** Each model draws from its own streams (:class:`~sb3_td3x.common.random_streams.RandomStreams`),
 detached right after ``make_model`` built it, where its lone run stands. Code that may draw from the global generators
 itself runs with its seed's streams installed as them: a seed's own ``train()``, and each round of a seed whose
@@ -27,15 +36,17 @@ import contextlib
 import contextvars
 import logging
 from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch as th
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.noise import NormalActionNoise
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
-from stable_baselines3.common.type_aliases import MaybeCallback
+from stable_baselines3.common.type_aliases import MaybeCallback, RolloutReturn
 
 from sb3_td3x.common import denormals
 from sb3_td3x.common.buffers import TensorReplayBuffer
@@ -43,6 +54,7 @@ from sb3_td3x.common.random_streams import RandomStreams, detached_streams
 from sb3_td3x.td3x.hooks import changed_hooks
 from sb3_td3x.td3x.td3x import TD3X
 from sb3_td3x.td3x.update_paths.compiled import decide_compile
+from sb3_td3x.td3x.update_paths.exploration import prefetch_actions
 from sb3_td3x.td3x.update_paths.mlp import MlpUpdate
 
 log = logging.getLogger(__name__)
@@ -86,9 +98,21 @@ class SeedBatch:
     :param make_model: builds seed ``seed``'s model, as its lone run would (``TD3X(..., seed=seed)`` on its own
         environment). It is called once per seed, in order; the caller's global random state is put back after
     :param seeds: the seeds, distinct
+    :param collect_threads: threads the seeds collect in (see the module's docstring): None, one per torch thread of
+        the process (``torch.get_num_threads()``) at most one per seed; 1: one after the other, in the caller's thread
+    :param batched_actions: pi(s) of all seeds in one batched product per layer: None (default) on a GPU, True also
+        on a CPU (there to float rounding, not bit for bit: each seed's own 2-D products are its lone run's), False
+        never
     """
 
-    def __init__(self, make_model: Callable[[int], OffPolicyAlgorithm], seeds: Sequence[int]):
+    def __init__(
+        self,
+        make_model: Callable[[int], OffPolicyAlgorithm],
+        seeds: Sequence[int],
+        *,
+        collect_threads: int | None = None,
+        batched_actions: bool | None = None,
+    ):
         seeds = self._check_seeds(seeds)
         models, streams = [], []
         caller = RandomStreams().state()
@@ -104,7 +128,7 @@ class SeedBatch:
                 streams.append(detached_streams(model))
         finally:
             RandomStreams().set_state(caller)
-        self._setup(models, streams, seeds)
+        self._setup(models, streams, seeds, collect_threads, batched_actions)
 
     @classmethod
     def from_models(
@@ -112,6 +136,9 @@ class SeedBatch:
         models: Sequence[OffPolicyAlgorithm],
         random_streams: Sequence[RandomStreams] | None = None,
         seeds: Sequence[int] | None = None,
+        *,
+        collect_threads: int | None = None,
+        batched_actions: bool | None = None,
     ) -> SeedBatch:
         """A batch of models built elsewhere (loaded from checkpoints, ...).
 
@@ -119,12 +146,14 @@ class SeedBatch:
             (:func:`~sb3_td3x.common.random_streams.detached_streams` right after building or loading it); default:
             detached now
         :param seeds: their seeds (default: each model's ``seed``)
+        :param collect_threads: as the constructor's
+        :param batched_actions: as the constructor's
         """
         batch = cls.__new__(cls)
         if seeds is None:
             seeds = [int(m.seed) if m.seed is not None else i for i, m in enumerate(models)]
         streams = list(random_streams) if random_streams is not None else [detached_streams(m) for m in models]
-        batch._setup(list(models), streams, cls._check_seeds(seeds))
+        batch._setup(list(models), streams, cls._check_seeds(seeds), collect_threads, batched_actions)
         return batch
 
     @staticmethod
@@ -138,7 +167,23 @@ class SeedBatch:
             raise ValueError(f"SeedBatch: seeds {seeds} repeat a seed; each seed is one run, give each once.")
         return [int(s) for s in seeds]
 
-    def _setup(self, models: list[OffPolicyAlgorithm], streams: list[RandomStreams], seeds: list[int]) -> None:
+    def _setup(
+        self,
+        models: list[OffPolicyAlgorithm],
+        streams: list[RandomStreams],
+        seeds: list[int],
+        collect_threads: int | None,
+        batched_actions: bool | None,
+    ) -> None:
+        if collect_threads is not None and (
+            not isinstance(collect_threads, (int, np.integer)) or isinstance(collect_threads, bool) or collect_threads < 1
+        ):
+            raise ValueError(
+                f"SeedBatch: collect_threads={collect_threads!r}; give a number of threads >= 1 (1: the seeds collect "
+                "one after the other), or None for one per torch thread."
+            )
+        if batched_actions not in (None, True, False):
+            raise ValueError(f"SeedBatch: batched_actions={batched_actions!r}; give None (on a GPU), True or False.")
         if len(models) != len(seeds) or len(streams) != len(seeds):
             raise ValueError(f"SeedBatch: {len(models)} models, {len(streams)} random streams and {len(seeds)} seeds.")
         if len({id(m) for m in models}) != len(models):
@@ -155,6 +200,10 @@ class SeedBatch:
         self.update_reason: str | None = None
         #: Seed index -> the exception that stopped it (``learn(keep_going=True)``).
         self.errors: dict[int, BaseException] = {}
+        self.collect_threads = None if collect_threads is None else int(collect_threads)
+        self.batched_actions = batched_actions
+        #: How the last ``learn()`` collected: threads used and seeds in them, whether pi(s) was batched, and why.
+        self.collection: str | None = None
         self._update: MlpUpdate | None = None
         self._globals = [True] * len(models)  # whose rounds run with their streams installed (set by learn)
         self._announced: set[int] = set()
@@ -262,6 +311,7 @@ class SeedBatch:
         self.errors, self._on_error = {}, on_error
         if len(self.models) == 1:  # one seed: its own learn()
             self._choose_update()
+            self.collection = "one seed: its own learn()"
             try:
                 with self.seed_context(0) as model:
                     model.learn(totals[0], callbacks[0], log_interval, tb_log_name or type(model).__name__, resets[0], progress_bar)
@@ -276,9 +326,10 @@ class SeedBatch:
         ]
         self._choose_update()  # after _setup_learn: auto compilation depends on the run's length
         active = [run for run in runs if not run.finished]
-        while active:
-            self._train([(run, steps) for run in active if (steps := self._collect(run, log_interval, keep_going))], keep_going)
-            active = [r for r in active if not (r.finished or r.failed) and r.model.num_timesteps < r.total_timesteps]
+        with self._collection_threads() as pool:
+            while active:
+                self._train(self._collect_round(active, log_interval, keep_going, pool), keep_going)
+                active = [r for r in active if not (r.finished or r.failed) and r.model.num_timesteps < r.total_timesteps]
         for run in runs:
             if not run.failed:
                 with self.seed_context(run.index, install=self._globals[run.index]):
@@ -302,12 +353,57 @@ class SeedBatch:
         self._globals[index] = _may_draw_from_globals(model, cb)
         return _SeedRun(index, model, total, cb, finished=model.num_timesteps >= total)
 
-    def _collect(self, run: _SeedRun, log_interval: int, keep_going: bool) -> int:
-        """One rollout of ``run``'s seed, as SB3's loop collects it; the gradient steps it then wants (0: none)."""
+    @contextlib.contextmanager
+    def _collection_threads(self) -> Iterator[ThreadPoolExecutor | None]:
+        """The threads of this ``learn()`` call's collection (None: the caller's alone), and :attr:`collection` set."""
+        in_threads = [i for i in range(len(self.models)) if not self._globals[i]]
+        wanted = self.collect_threads if self.collect_threads is not None else th.get_num_threads()
+        threads = min(wanted, len(in_threads))
+        on_gpu = self.models[0].device.type == "cuda"
+        batched = on_gpu if self.batched_actions is None else self.batched_actions
+        self._batched_actions = batched and all(isinstance(m, TD3X) for m in self.models)
+        actions = "pi(s) batched across seeds" if self._batched_actions else "pi(s) per seed"
+        if threads < 2:
+            why = "one torch thread" if wanted < 2 else "fewer than two seeds whose code draws only from their streams"
+            self.collection = f"one seed after the other ({why}); {actions}"
+            yield None
+            return
+        alone = len(self.models) - len(in_threads)
+        self.collection = f"{len(in_threads)} seeds in {threads} threads" + (f", {alone} in turn after them" if alone else "")
+        self.collection += f"; {actions}"
+        pool = ThreadPoolExecutor(threads, thread_name_prefix="sb3_td3x_collect", initializer=denormals.same_fp_environment())
+        try:
+            yield pool
+        finally:
+            pool.shutdown(wait=True)
+
+    def _collect_round(
+        self, active: list[_SeedRun], log_interval: int, keep_going: bool, pool: ThreadPoolExecutor | None
+    ) -> list[tuple[_SeedRun, int]]:
+        """One rollout of every active seed; the seeds that then want gradient steps, with their number."""
+        try:
+            if self._batched_actions:
+                prefetch_actions([run.model for run in active])
+            threaded = [run for run in active if not self._globals[run.index]] if pool is not None else []
+            outcomes = {}
+            if pool is not None and len(threaded) > 1:
+                outcomes = _all_done({run.index: pool.submit(self._rollout, run, log_interval) for run in threaded})
+            wants = []
+            for run in active:  # in seed order: the threaded seeds' outcomes, then each other seed's rollout
+                outcome = outcomes[run.index] if run.index in outcomes else self._rollout(run, log_interval)
+                if steps := self._gradient_steps_wanted(run, *outcome, keep_going):
+                    wants.append((run, steps))
+            return wants
+        finally:
+            for run in active:
+                run.model.__dict__.pop("_prefetched_action", None)
+
+    def _rollout(self, run: _SeedRun, log_interval: int) -> tuple[RolloutReturn | None, Exception | None]:
+        """One rollout of ``run``'s seed, as SB3's loop collects it, or what it raised."""
         model = run.model
         try:
             with self.seed_context(run.index, install=self._globals[run.index]):
-                rollout = model.collect_rollouts(
+                return model.collect_rollouts(
                     model.env,  # type: ignore[arg-type]
                     train_freq=model.train_freq,  # type: ignore[arg-type]
                     action_noise=model.action_noise,
@@ -315,14 +411,23 @@ class SeedBatch:
                     learning_starts=model.learning_starts,
                     replay_buffer=model.replay_buffer,  # type: ignore[arg-type]
                     log_interval=log_interval,
-                )
+                ), None
         except Exception as error:
+            return None, error
+
+    def _gradient_steps_wanted(
+        self, run: _SeedRun, rollout: RolloutReturn | None, error: Exception | None, keep_going: bool
+    ) -> int:
+        """The gradient steps ``run``'s seed wants after its rollout (0: none; it stopped, or is still warming up)."""
+        if error is not None:
             self._fail(run.index, error, keep_going)
             run.failed = True
             return 0
+        assert rollout is not None
         if not rollout.continue_training:
             run.finished = True
             return 0
+        model = run.model
         if model.num_timesteps > 0 and model.num_timesteps > model.learning_starts:
             return model.gradient_steps if model.gradient_steps >= 0 else rollout.episode_timesteps
         return 0
@@ -419,6 +524,21 @@ class SeedBatch:
         for i, m in enumerate(models):
             with acting_as(i), self._globals_for(i):
                 m._log_train_infos(*infos[i])  # type: ignore[attr-defined]
+
+
+def _all_done(futures: dict[int, Future]) -> dict[int, Any]:
+    """Each future's result, once all are done. A wait interrupted (a signal's exception) waits on until they are
+    done, then raises: no seed goes on collecting behind the caller's back (a checkpoint of a seed in mid-step)."""
+    interrupted: BaseException | None = None
+    pending = set(futures.values())
+    while pending:
+        try:
+            pending = wait(pending)[1]
+        except BaseException as error:  # noqa: BLE001 (raised below, once the threads are done)
+            interrupted = interrupted or error
+    if interrupted is not None:
+        raise interrupted
+    return {index: future.result() for index, future in futures.items()}
 
 
 def _may_draw_from_globals(model: OffPolicyAlgorithm, callback: BaseCallback) -> bool:

@@ -666,10 +666,14 @@ class TD3X(OffPolicyAlgorithm):
         actor = self._exploration()[0]
         if actor is None:  # the actor or the predict path is the user's: SB3's own
             return super()._sample_action(learning_starts, action_noise, n_envs)  # type: ignore[arg-type]
-        with th.no_grad():
-            obs = th.as_tensor(self._last_obs, device=self.device).reshape(n_envs, *self.observation_space.shape)
-            # (n_envs, *action_shape), in [-1, 1]
-            scaled_action = actor(obs).cpu().numpy().reshape((n_envs, *self.action_space.shape))
+        prefetched = self.__dict__.pop("_prefetched_action", None)  # pi(s) computed with other seeds' (SeedBatch)
+        if prefetched is not None and prefetched.valid_for(self, actor):
+            scaled_action = prefetched.actions
+        else:
+            with th.no_grad():
+                obs = th.as_tensor(self._last_obs, device=self.device).reshape(n_envs, *self.observation_space.shape)
+                # (n_envs, *action_shape), in [-1, 1]
+                scaled_action = actor(obs).cpu().numpy().reshape((n_envs, *self.action_space.shape))
         if action_noise is not None:
             scaled_action = np.clip(scaled_action + action_noise(), -1, 1)
         return self.policy.unscale_action(scaled_action), scaled_action
@@ -821,6 +825,7 @@ class TD3X(OffPolicyAlgorithm):
             "_step_fn",
             "_step_fn_for",
             "_exploration_choice",
+            "_prefetched_action",
             "random_streams",
             "update_path",
             "update_reason",

@@ -7,6 +7,9 @@ the per-seed one (an overridden loss hook), and with an action noise of the user
 generator; and they must differ when the seeds' random streams are shared or swapped.
 """
 
+import threading
+import time
+
 import numpy as np
 import pytest
 import torch as th
@@ -272,3 +275,161 @@ def test_an_overridden_train_runs_and_an_overridden_learn_is_refused():
         SeedBatch(factory(OwnLearn), SEEDS[:2]).learn(10)
     single = SeedBatch(factory(OwnLearn), SEEDS[:1]).learn(10)  # one seed: its own learn()
     assert single[0].my_learn_ran
+
+
+# Collection: the seeds in threads, pi(s) batched ---------------------------------------------------------------------
+def _collecting_threads(monkeypatch):
+    """The names of the threads each seed's transitions were stored from (TD3X's own method, patched on the class:
+    the models stay TD3X's, so their rounds may run in threads)."""
+    seen = {}
+    store = TD3X._store_transition
+
+    def recording(self, *args, **kwargs):
+        seen.setdefault(self.seed, set()).add(threading.current_thread().name)
+        return store(self, *args, **kwargs)
+
+    monkeypatch.setattr(TD3X, "_store_transition", recording)
+    return seen
+
+
+def test_seeds_collecting_in_threads_compute_their_lone_runs_bit_for_bit(monkeypatch):
+    """collect_threads: the seeds whose code draws only from their streams collect in threads (their environments
+    step in parallel), a seed with a user's action noise in the caller's thread after them; each is its lone run."""
+
+    def make(seed):  # seed 1 with a user's noise, which draws from numpy's global generator
+        return factory(noise=GlobalNoise if seed == 1 else NormalActionNoise)(seed)
+
+    lone = lone_runs(make, steps=300)
+    threads = _collecting_threads(monkeypatch)
+    batch = SeedBatch(make, SEEDS, collect_threads=2).learn(300)
+    assert batch.collection == "2 seeds in 2 threads, 1 in turn after them; pi(s) per seed"
+    assert batch._globals == [False, True, False]
+    assert all(name.startswith("sb3_td3x_collect") for seed in (0, 2) for name in threads[seed])
+    assert threads[1] == {threading.main_thread().name}
+    assert_same_runs(batch, lone)
+
+
+def test_evaluations_in_collection_threads_equal_the_lone_runs(monkeypatch):
+    """SB3's EvalCallback (SB3's code: its seed collects in a thread) evaluates inside collection, on its own env."""
+    make = factory()
+
+    def evaluation(seed):
+        return EvalCallback(factory()(seed).get_env(), eval_freq=150, n_eval_episodes=1, verbose=0, warn=False)
+
+    lone_evals = []
+    for seed in SEEDS:
+        callback = evaluation(seed)
+        make(seed).learn(300, callback=callback)
+        lone_evals.append(callback.evaluations_results)
+    threads = _collecting_threads(monkeypatch)
+    callbacks = [evaluation(seed) for seed in SEEDS]
+    batch = SeedBatch(make, SEEDS, collect_threads=3).learn(300, callback=callbacks)
+    assert batch.collection.startswith("3 seeds in 3 threads")
+    assert all(name.startswith("sb3_td3x_collect") for names in threads.values() for name in names)
+    assert [cb.evaluations_results for cb in callbacks] == lone_evals
+
+
+class PerturbActor(BaseCallback):
+    """Zeroes the actor's output layer in place at the start of one rollout (after batched pi(s) was computed):
+    pi(s) = tanh(0) = 0 from then on, until the next actor update."""
+
+    def __init__(self, at_step):
+        super().__init__()
+        self.at_step = at_step
+
+    def _on_rollout_start(self):
+        if self.num_timesteps == self.at_step:
+            with th.no_grad():
+                self.model.actor.mu[-2].weight.zero_()
+                self.model.actor.mu[-2].bias.zero_()
+
+    def _on_step(self):
+        return True
+
+
+def _count_prefetched(monkeypatch):
+    """How many collection steps took a prefetched pi(s), per seed."""
+    from sb3_td3x.td3x.update_paths import exploration
+
+    taken = {}
+    valid = exploration.PrefetchedAction.valid_for
+
+    def counting(self, model, actor):
+        ok = valid(self, model, actor)
+        taken[model.seed] = taken.get(model.seed, 0) + ok
+        return ok
+
+    monkeypatch.setattr(exploration.PrefetchedAction, "valid_for", counting)
+    return taken
+
+
+def test_batched_actions_compute_what_each_seed_computes(monkeypatch):
+    """batched_actions=True (the GPU's default) on a CPU: pi(s) of the three seeds in one batched product per layer,
+    each seed's collection to float rounding its lone run's. A seed whose actor changed in place after the batched
+    pi(s) (a callback at a rollout's start) computes its own: else it would act with the old weights."""
+    lone = []
+    for seed in SEEDS:
+        lone.append(factory()(seed).learn(STEPS, callback=PerturbActor(250) if seed == 1 else None))
+    taken = _count_prefetched(monkeypatch)
+    callbacks = [PerturbActor(250) if seed == 1 else None for seed in SEEDS]
+    batch = SeedBatch(factory(), SEEDS, batched_actions=True).learn(STEPS, callback=callbacks)
+    assert batch.collection.endswith("pi(s) batched across seeds")
+    # From learning_starts on, every step but seed 1's at step 250 took the batched pi(s).
+    assert taken == {0: STEPS - 100, 1: STEPS - 100 - 1, 2: STEPS - 100}
+    assert_same_runs(batch, lone, exact=False)
+
+
+def test_the_batched_actions_test_fails_when_the_rows_are_mixed_up(monkeypatch):
+    """The seeds' rows of the batched pi(s) swapped: the collections differ from the lone runs, and it is seen."""
+    from dataclasses import replace
+
+    from sb3_td3x.td3x import seed_batch
+
+    prefetch = seed_batch.prefetch_actions
+
+    def mixed_up(models):
+        served = prefetch(models)
+        if len(served) > 1:
+            first, second = (models[i] for i in served[:2])
+            first._prefetched_action, second._prefetched_action = (
+                replace(first._prefetched_action, actions=second._prefetched_action.actions),
+                replace(second._prefetched_action, actions=first._prefetched_action.actions),
+            )
+        return served
+
+    monkeypatch.setattr(seed_batch, "prefetch_actions", mixed_up)
+    lone = lone_runs(factory(), steps=200)
+    batch = SeedBatch(factory(), SEEDS, batched_actions=True).learn(200)
+    with pytest.raises(AssertionError):
+        assert_same_runs(batch, lone, exact=False)
+
+
+def test_an_interrupted_wait_lets_every_collection_thread_finish(monkeypatch):
+    """A signal's exception in the caller's wait (Ctrl-C) is raised only once every seed's rollout is done: no
+    seed goes on collecting behind a checkpoint."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from sb3_td3x.td3x import seed_batch
+
+    calls = []
+    real_wait = seed_batch.wait
+
+    def interrupted_once(pending):
+        calls.append(len(pending))
+        if len(calls) == 1:
+            raise KeyboardInterrupt
+        return real_wait(pending)
+
+    monkeypatch.setattr(seed_batch, "wait", interrupted_once)
+    with ThreadPoolExecutor(2) as pool:
+        futures = {i: pool.submit(time.sleep, 0.2) for i in range(2)}
+        with pytest.raises(KeyboardInterrupt):
+            seed_batch._all_done(futures)
+        assert all(f.done() for f in futures.values()) and len(calls) == 2
+
+
+def test_bad_collection_options_are_refused():
+    with pytest.raises(ValueError, match=r"collect_threads=0; give a number of threads >= 1"):
+        SeedBatch(factory(), SEEDS[:2], collect_threads=0)
+    with pytest.raises(ValueError, match="batched_actions='yes'"):
+        SeedBatch(factory(), SEEDS[:2], batched_actions="yes")

@@ -6,18 +6,26 @@ MLP with a tanh output) :class:`DirectMlpActor` computes the same products with 
 calls (a third of the time of an actor forward on one observation). It stands in for ``actor.forward`` and for the
 predict path above, so :meth:`DirectMlpActor.why_not` requires all of them as written; otherwise collection is
 SB3's own ``_sample_action``.
+
+Many seeds in one process (:class:`~sb3_td3x.SeedBatch`) on a GPU compute pi(s) of all their seeds at the start of a
+round in one batched product per layer (:func:`prefetch_actions`), the weights stacked as the seed-stacked update
+stacks them; each seed's collection step then takes its row (:class:`PrefetchedAction`) where nothing it depends on
+has changed since, and computes pi(s) itself otherwise. The exploration noise, the clipping and the scaling stay the
+seed's own. On a CPU each seed computes its own, with the 2-D products of its lone run.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
 import torch as th
 from torch import nn
 
 from sb3_td3x.td3x.update_paths import requirements
-from sb3_td3x.td3x.update_paths.mlp import addmm_relu, relu_mlp
+from sb3_td3x.td3x.update_paths.mlp import MlpStack, addmm_relu, relu_mlp
 
 
 class DirectMlpActor(requirements.FastPath):
@@ -48,3 +56,83 @@ def choose_exploration_actor(model: Any) -> tuple[Callable[[th.Tensor], th.Tenso
         layers = requirements.relu_mlp_layers(model.actor.mu, nn.Tanh)
         return DirectMlpActor(layers), "direct_mlp", "SB3's Actor, a ReLU MLP with a tanh output, predict as written"  # type: ignore[arg-type]
     return None, "sb3_predict", reason
+
+
+@dataclass(frozen=True)
+class PrefetchedAction:
+    """pi(s) of a model's next collection step, computed ahead of it with other seeds' (:func:`prefetch_actions`).
+
+    Valid while nothing it was computed from has changed: the same observation array (``_last_obs``, the same
+    object), the same ``num_timesteps``, the same shortcut, and the actor's parameters neither changed in place (their
+    version counters) nor replaced (their memory) since."""
+
+    obs: np.ndarray
+    num_timesteps: int
+    actor: DirectMlpActor
+    versions: tuple[int, ...]
+    actions: np.ndarray  # (n_envs, *action_shape), in [-1, 1]
+
+    def valid_for(self, model: Any, actor: Any) -> bool:
+        return (
+            self.obs is model._last_obs
+            and self.num_timesteps == model.num_timesteps
+            and self.actor is actor
+            and self.versions == _versions(actor)
+        )
+
+
+def _versions(actor: DirectMlpActor) -> tuple[int, ...]:
+    """The actor's parameters' version counters (bumped by every in-place change) and memory (``.data`` replaced)."""
+    return tuple(n for layer in actor.layers for p in (layer.weight, layer.bias) for n in (p._version, p.data_ptr()))
+
+
+def why_not_prefetch(model: Any) -> str | None:
+    """Why ``model``'s next collection step would not take a prefetched pi(s) (it computes its own), or None."""
+    if model.num_timesteps < model.learning_starts:
+        return "its next action is a random one (before learning_starts)"
+    if not isinstance(model._last_obs, np.ndarray):
+        return "its observations are not one array"
+    if model._exploration()[0] is None:
+        return f"collection runs SB3's predict ({model._exploration()[2]})"
+    return None
+
+
+def _kind(model: Any, actor: DirectMlpActor) -> tuple[Any, ...]:
+    """What models must share for one batched product: layer shapes, observation batch, device, dtype."""
+    first = actor.layers[0].weight
+    shapes = tuple(tuple(p.shape) for layer in actor.layers for p in (layer.weight, layer.bias))
+    return shapes, model._last_obs.shape, first.device, first.dtype
+
+
+def prefetch_actions(models: Sequence[Any]) -> list[int]:
+    """pi(s) of every model of ``models`` whose next collection step takes :class:`DirectMlpActor`, in one batched
+    product per layer (the actors' weights stacked, the observations stacked), left on each model for that step
+    (:class:`PrefetchedAction`, taken by ``TD3X._sample_action``). Returns the positions of the models served; none
+    unless at least two can be, with one architecture, one number of environments and one device.
+
+    The batched product is the stacked update's (:meth:`MlpStack.forward`): what each seed's own 2-D products
+    compute, to float rounding.
+    """
+    ready = [i for i, m in enumerate(models) if why_not_prefetch(m) is None]
+    actors = [models[i]._exploration()[0] for i in ready]
+    kinds = {_kind(models[i], actor) for i, actor in zip(ready, actors)}
+    if len(ready) < 2 or len(kinds) != 1:
+        return []
+    first = models[ready[0]]
+    n_envs, depth = first.n_envs, len(actors[0].layers)
+    with th.no_grad():
+        weights = [th.stack([a.layers[d].weight for a in actors]) for d in range(depth)]
+        biases = [th.stack([a.layers[d].bias for a in actors]) for d in range(depth)]
+        obs = np.stack([models[i]._last_obs for i in ready])
+        x = th.as_tensor(obs, device=first.device).reshape(len(ready), n_envs, -1).float()
+        actions = MlpStack.forward(x, weights, biases)[0].tanh_().cpu().numpy()
+    for row, (i, actor) in enumerate(zip(ready, actors)):
+        model = models[i]
+        model._prefetched_action = PrefetchedAction(
+            model._last_obs,
+            model.num_timesteps,
+            actor,
+            _versions(actor),
+            actions[row].reshape((n_envs, *model.action_space.shape)),
+        )
+    return ready
