@@ -2,6 +2,10 @@
 
     python benchmarks/seeds_profile.py --seeds 16 --device cuda          # what docs/performance.md quotes (H100)
     python benchmarks/seeds_profile.py --seeds 2 --device cpu --env Hopper-v5
+    python benchmarks/seeds_profile.py --seeds 8 --device cpu --env Hopper-v5 --threads 2 --collect-threads 2
+
+cProfile sees the caller's thread only: with ``--collect-threads`` above 1, the seeds' collection shows as the
+cumulative time of ``SeedBatch._collect_round`` (the caller waiting for the threads), the update as ``_train``.
 
 TD3's Ant-v5 settings of benchmarks/seeds_scaling.py (400-300 networks, batch 256). The models first run
 ``learning_starts`` random steps and ``--warmup`` training steps, untimed; then ``--steps`` rounds (every seed one
@@ -34,13 +38,17 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=150, help="profiled rounds")
     parser.add_argument("--warmup", type=int, default=100, help="untimed training steps after learning_starts")
     parser.add_argument("--rows", type=int, default=28, help="functions listed per table")
+    parser.add_argument("--threads", type=int, default=th.get_num_threads(), help="torch threads")
+    parser.add_argument("--collect-threads", type=int, default=1, help="SeedBatch's collect_threads")
     args = parser.parse_args()
-    if args.seeds < 1 or args.steps < 1 or args.warmup < 0:
-        parser.error("--seeds and --steps must be at least 1, --warmup at least 0")
+    if min(args.seeds, args.steps, args.threads, args.collect_threads) < 1 or args.warmup < 0:
+        parser.error("--seeds, --steps, --threads and --collect-threads must be at least 1, --warmup at least 0")
+    th.set_num_threads(args.threads)
     if args.device.startswith("cuda") and not th.cuda.is_available():
         parser.error("--device cuda: torch sees no CUDA device here; use --device cpu")
     config = Config(args.env, 256, (400, 300), 20_000, 1000, args.warmup, args.steps, args.device)
-    batch = SeedBatch(lambda seed: make_model(TD3X, config, seed), list(range(args.seeds)))
+    seeds = list(range(args.seeds))
+    batch = SeedBatch(lambda seed: make_model(TD3X, config, seed), seeds, collect_threads=args.collect_threads)
     batch.learn(config.learning_starts + args.warmup)
     if th.device(args.device).type == "cuda":
         th.cuda.synchronize()
@@ -53,7 +61,8 @@ def main() -> None:
     profile.disable()
     wall = time.perf_counter() - start
     print(f"{args.env}, {args.seeds} seeds on {args.device}: {args.seeds * args.steps / wall:.1f} seed-steps/s under "
-          f"cProfile, {1000 * wall / args.steps:.1f} ms per round; update path {batch.update_path}")
+          f"cProfile, {1000 * wall / args.steps:.1f} ms per round; update path {batch.update_path}; "
+          f"collection: {batch.collection}; {th.get_num_threads()} torch threads")
     stats = pstats.Stats(profile)
     stats.sort_stats("cumulative").print_stats(args.rows)
     stats.sort_stats("tottime").print_stats(15)

@@ -14,9 +14,11 @@ environment step and one gradient step. Then ``--steps`` steps per seed are time
 reset_num_timesteps=False)``, a GPU synchronized at both ends). Four ways to train N seeds:
 
 - ``batched``: one process, ``SeedBatch(make_model, seeds=range(N)).learn(...)``, torch threads = ``--threads``
-  (default: every core this process may run on). Its rate is N * steps / the timed call's wall time. The table
+  (default: every core this process may run on), with SeedBatch's defaults: the seeds collect one after the other,
+  pi(s) batched across seeds on a GPU. Its rate is N * steps / the timed call's wall time. The table
   notes a batch whose gradient steps did not run batched (``update_path`` other than ``seed_stacked_mlp``; with one
   seed it is ``per_seed``, the lone update).
+- ``batched_threads``: the same batch with the seeds collecting in ``--threads`` threads (``collect_threads``).
 - ``batched_per_core``: ``min(N, threads)`` processes side by side, each a ``SeedBatch`` of every P-th seed, with
   the threads shared among them (one each on a CPU with as many cores as threads): what ``python run.py -m
   seeds=[0,2,4,6],[1,3,5,7]`` runs. On a CPU, one thread per process beats two threads in one for these small
@@ -90,8 +92,8 @@ from throughput import as_part_of_a_run
 
 from sb3_td3x import TD3X, SeedBatch
 
-MODES = ("batched", "batched_per_core", "td3x_procs", "sb3_procs", "sbx_procs")
-BATCHED_MODES = ("batched", "batched_per_core")
+MODES = ("batched", "batched_threads", "batched_per_core", "td3x_procs", "sb3_procs", "sbx_procs")
+BATCHED_MODES = ("batched", "batched_threads", "batched_per_core")
 ALGORITHMS = {"td3x_procs": TD3X, "sb3_procs": TD3}  # sbx_procs: sbx_td3(), imported in its own processes
 MPS_SUFFIX = "+mps"
 
@@ -175,7 +177,8 @@ def worker(config: Config, mode: str, seeds: list[int], threads: int, pad: bool,
         th.set_num_threads(threads)
         mode = base_mode(mode)
         if mode in BATCHED_MODES:
-            trainer = SeedBatch(lambda seed: make_model(TD3X, config, seed), seeds)
+            collect_threads = threads if mode == "batched_threads" else 1
+            trainer = SeedBatch(lambda seed: make_model(TD3X, config, seed), seeds, collect_threads=collect_threads)
         elif mode == "sbx_procs":
             trainer = make_model(sbx_td3(threads), config, seeds[0])
         else:
@@ -198,6 +201,7 @@ def worker(config: Config, mode: str, seeds: list[int], threads: int, pad: bool,
                 "end": wall_end,
                 "threads": th.get_num_threads(),
                 "update_path": getattr(trainer, "update_path", None),
+                "collection": getattr(trainer, "collection", None),
                 "pid": os.getpid(),
             }
         )
@@ -284,7 +288,7 @@ def seed_groups(mode: str, n_seeds: int, threads: int) -> list[list[int]]:
     """The seeds of each process: all in one (``batched``), one batch per thread (``batched_per_core``: as even as
     possible, ``min(N, threads)`` processes), or one seed each."""
     mode = base_mode(mode)
-    if mode == "batched":
+    if mode in ("batched", "batched_threads"):
         return [list(range(n_seeds))]
     if mode == "batched_per_core":
         processes = min(n_seeds, threads)
@@ -296,7 +300,7 @@ def threads_for(mode: str, n_seeds: int, threads: int) -> int:
     """Torch threads of each process: all of ``threads`` for the batch, the cores shared among the processes else."""
     from sb3_td3x.experiment.cli import threads_per_job  # here: it imports Hydra, which the workers do without
 
-    if base_mode(mode) == "batched":
+    if base_mode(mode) in ("batched", "batched_threads"):
         return threads
     return threads_per_job(len(seed_groups(mode, n_seeds, threads)), threads)
 
@@ -417,7 +421,7 @@ def parse_arguments(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--env", default="Hopper-v5")
     parser.add_argument("--batch-size", type=int, default=100)
     parser.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 4, 8], help="the N to measure")
-    parser.add_argument("--modes", nargs="+", choices=MODES, default=[m for m in MODES if m != "sbx_procs"])
+    parser.add_argument("--modes", nargs="+", choices=MODES, default=[m for m in MODES if m not in ("sbx_procs", "batched_threads")])
     parser.add_argument("--steps", type=int, default=2_000, help="timed environment steps per seed")
     parser.add_argument("--warmup", type=int, default=500, help="untimed training steps past learning_starts")
     parser.add_argument("--learning-starts", type=int, default=1_000)

@@ -1,18 +1,17 @@
 #!/usr/bin/env bash
-# The GPU checks of a session lent a GPU machine (device tool), in two calls of under 10 minutes each. Prepare here,
-# once: `bash scripts/gpu_wheels.sh` (the packages the machine's image lacks, into .whl/), then call the device
-# tool's run with
+# The GPU checks of a session lent a GPU machine (device tool). A session has 15 minutes of device time, the
+# machine's start included: one call of under 10 minutes. Prepare here, once: `bash scripts/gpu_wheels.sh` (the
+# packages the machine's image lacks, into .whl/), then call the device tool's run with
 #   command: bash scripts/gpu_session.sh measure     carry: [".whl", ".gl"]     timeout_s: 600
-#   command: bash scripts/gpu_session.sh suite       carry: [".whl", ".gl"]     timeout_s: 600   (right after: still warm)
-# measure: `python run.py env=ant`'s update path (graphs by default), the GPU test layer (tests/gpu: cuda_graph
-#          replays against eager steps, TD3X against SB3 on the GPU, the seed batch and seeds=[...] in processes on
-#          the GPU), TD3X's default (auto: CUDA graphs for a stock model) and cuda_graph=False (eager)
-#          against SB3's TD3 (Ant-v5, HalfCheetah-v5), and
-#          the many-seeds benchmark (SeedBatch against separate TD3X and SB3 processes, up to 16 seeds).
-# sb3_seeds: 16 separate SB3 processes on the GPU, the many-seeds baseline that measure's time limit leaves out.
-# seeds16: 16 Ant seeds every way (one SeedBatch, TD3X, SB3 and SBX processes), the processes with and without MPS.
-# suite:   the whole test suite on the GPU machine (device "auto" is CUDA there), W&B tests left out (no wandb wheel).
-# Everything goes to $OUT (at most 8 files come back). Each part has its own time limit, so that a slow one does not
+# and the other parts in later sessions, in this order:
+# measure:    issue 35's numbers: `python run.py env=ant`'s update path (graphs by default), one seed of TD3X's
+#             default (graphs) and cuda_graph=False against SB3's and SBX's TD3 (Ant-v5, HalfCheetah-v5), and 16 Ant
+#             seeds every way (one SeedBatch, TD3X and SBX processes, with and without MPS; one SB3 process).
+# suite:      the whole test suite on the GPU machine (device "auto" is CUDA there), W&B tests left out.
+# tests_cuda: the GPU test layer and the tests that name CUDA, graphs or seed batches (a shorter check).
+# seeds16:    16 Ant seeds every way with SB3's processes too (the measure part leaves them out for time).
+# sb3_seeds:  16 separate SB3 processes on the GPU.
+# Everything goes to $OUT (at most 8 files come back). Each step has its own time limit, so that a slow one does not
 # take the others' results with it. First run: 2026-11-23 (H100), see docs/performance.md.
 set -uo pipefail
 cd "$(dirname "$0")/.."
@@ -36,32 +35,38 @@ export PYTHONPATH=/tmp/site:$PWD MUJOCO_GL=egl PYTHONUNBUFFERED=1
 left() { echo $(( ${1} - (SECONDS - start) )); }  # seconds left of this part's budget
 
 if [ "$part" = measure ]; then
-  # 0. `python run.py env=ant` takes the graph path by itself on the GPU (issue 35): a short run with the env's own
-  # settings (10k random steps, then 300 gradient steps); its update line goes to $OUT (the run folder stays in /tmp).
-  timeout 90 python3 run.py env=ant total_timesteps=10300 eval.freq=100000 logger=none progress_bar=false \
+  # Issue 35's three measurements, in one call of under 10 minutes (a session's 15 minutes of device time hold one):
+  # 0. `python run.py env=ant` takes the graph path by itself on the GPU: a short run with the env's own settings
+  # (10k random steps, then 300 gradient steps); its update line goes to $OUT (the run folder stays in /tmp).
+  timeout 75 python3 run.py env=ant total_timesteps=10300 eval.freq=100000 logger=none progress_bar=false \
     run_dir=/tmp/ant_default > /tmp/ant_default.txt 2>&1
   echo "run.py env=ant rc=$?; $(grep -o 'update: [a-z_]* ([^;]*' /tmp/ant_default.txt | head -1)" > "$OUT/ant_default.txt"
   cat "$OUT/ant_default.txt"
-  # 1. The GPU test layer, then every test that names CUDA, a device or graphs.
-  timeout 170 python3 -m pytest -q -p no:cacheprovider -n 6 --timeout 160 -rs tests/gpu \
-    tests/unit/test_acceleration.py tests/drop_in/test_drop_in_predict.py tests/drop_in/test_drop_in_save_load.py \
-    tests/equivalence/test_mlp_update_seeds.py > "$OUT/tests_cuda.txt" 2>&1
-  echo "tests_cuda rc=$?" >> "$OUT/tests_cuda.txt"
-  # 2. TD3X (eager: cuda_graph=False, then the default, which takes CUDA graphs for these stock models) against
-  # SB3's TD3 on the GPU, each pair in one process, chunks alternated.
-  timeout 170 python3 benchmarks/throughput.py --env Ant-v5 HalfCheetah-v5 --chunks 3 --chunk-steps 1000 \
-    --warmup 1500 --td3x cuda_graph=false --json "$OUT/throughput.json" > "$OUT/throughput.txt" 2>&1
-  echo "throughput rc=$?" >> "$OUT/throughput.txt"
-  timeout 130 python3 benchmarks/throughput.py --env Ant-v5 HalfCheetah-v5 --chunks 3 --chunk-steps 1000 \
-    --warmup 1500 --json "$OUT/throughput_graph.json" >> "$OUT/throughput.txt" 2>&1
+  # 1. One seed: TD3X's default (auto: CUDA graphs for these stock models), then cuda_graph=False (the eager path,
+  # the default before), each against SB3's and SBX's TD3 in one process, chunks alternated.
+  timeout 110 python3 benchmarks/throughput.py --env Ant-v5 HalfCheetah-v5 --chunks 2 --chunk-steps 1000 \
+    --warmup 1000 --json "$OUT/throughput_graph.json" > "$OUT/throughput.txt" 2>&1
   echo "throughput default (auto cuda_graph) rc=$?" >> "$OUT/throughput.txt"
-  # 3. Many seeds: SeedBatch against separate TD3X and SB3 processes.
-  budget=$(left 575)
+  timeout 100 python3 benchmarks/throughput.py --env Ant-v5 HalfCheetah-v5 --chunks 2 --chunk-steps 1000 \
+    --warmup 1000 --td3x cuda_graph=false --json "$OUT/throughput.json" >> "$OUT/throughput.txt" 2>&1
+  echo "throughput cuda_graph=false rc=$?" >> "$OUT/throughput.txt"
+  # 2. Sixteen Ant seeds every way: one SeedBatch (pi(s) batched; the seeds collecting in turn, then in 16 threads),
+  # 16 TD3X and 16 SBX processes, with and without CUDA MPS; one SB3 process is the baseline.
+  modes="batched batched_threads td3x_procs"
+  python3 -c "import sbx" 2>/dev/null && modes="$modes sbx_procs"
+  budget=$(left 570)
   timeout $(( budget > 30 ? budget : 30 )) python3 benchmarks/seeds_scaling.py --env Ant-v5 --batch-size 256 \
-    --device cuda --seeds 1 4 16 --modes batched td3x_procs sb3_procs --steps 400 --warmup 100 \
-    --json "$OUT/seeds_cuda.json" > "$OUT/seeds.txt" 2>&1
-  echo "seeds rc=$?" >> "$OUT/seeds.txt"
-  tail -n 4 "$OUT"/tests_cuda.txt; tail -n 30 "$OUT"/throughput.txt; tail -n 25 "$OUT"/seeds.txt
+    --device cuda --seeds 16 --modes $modes --mps both --steps 200 --warmup 100 \
+    --json "$OUT/seeds16_mps.json" > "$OUT/seeds16_mps.txt" 2>&1
+  echo "seeds16 rc=$?" >> "$OUT/seeds16_mps.txt"
+  tail -n 30 "$OUT"/throughput.txt; tail -n 16 "$OUT"/seeds16_mps.txt
+elif [ "$part" = tests_cuda ]; then
+  # The GPU test layer, then every test that names CUDA, a device or graphs.
+  timeout 300 python3 -m pytest -q -p no:cacheprovider -n 6 --timeout 160 -rs tests/gpu \
+    tests/unit/test_acceleration.py tests/drop_in/test_drop_in_predict.py tests/drop_in/test_drop_in_save_load.py \
+    tests/equivalence/test_mlp_update_seeds.py tests/equivalence/test_seed_batch.py > "$OUT/tests_cuda.txt" 2>&1
+  echo "tests_cuda rc=$?" >> "$OUT/tests_cuda.txt"
+  tail -n 20 "$OUT"/tests_cuda.txt
 elif [ "$part" = seeds16 ]; then
   # Issue 35's 16-seed table: every way of training 16 Ant seeds on the machine, the separate processes with and
   # without CUDA MPS (benchmarks/seeds_scaling.py --mps both); SBX's processes where sbx-rl imports (its wheels,

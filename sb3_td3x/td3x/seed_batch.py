@@ -14,14 +14,17 @@ through one :class:`~.update_paths.mlp.MlpUpdate` of all their models (``"seed_s
 one of them, else through each model's own ``train()`` (``"per_seed"``, with the reason). On a CPU seed ``i`` then
 computes its lone run's numbers bit for bit; on a GPU, where the seeds share each product, to float rounding.
 
-**Collection.** The seeds collect side by side, in ``collect_threads`` threads (default: one per torch thread of the
-process, so none besides the caller's with one thread): MuJoCo's step and torch's kernels release Python's lock, so
-the seeds' environments step in parallel. Only seeds whose round code draws nothing from the global generators
-(see *Random numbers*) collect in threads, the others after them in the caller's thread, one by one. A thread starts with the
-caller's floating-point environment, and each seed's code runs as its lone run's, so a seed computes the same bits
-in a thread. On a GPU (``batched_actions``) pi(s) of all seeds is computed at the start of a round in one batched
-product per layer, the actors' weights stacked (:func:`~.update_paths.exploration.prefetch_actions`; a seed whose
-observation, step count or actor changed since computes its own); each seed's exploration noise is its own draw.
+**Collection.** The seeds collect one after the other in the caller's thread, or side by side in
+``collect_threads`` threads: MuJoCo's step and torch's kernels release Python's lock, so there the seeds'
+environments step in parallel. Only seeds whose round code draws nothing from the global generators (see *Random
+numbers*) collect in threads, the others after them in the caller's thread. A thread starts with the caller's
+floating-point environment, and each seed's code runs as its lone run's, so a seed computes the same bits in a
+thread. Threads are not the default: on a 2-core CPU they made a batch of 8 Hopper seeds 1.8 times slower (the
+seeds' Python contends for the lock, and the extra OpenMP teams make torch's threads stop spinning between the
+update's kernels; docs/seeds.md). On a GPU (``batched_actions``) pi(s) of all seeds is computed at the start of a
+round in one batched product per layer, the actors' weights stacked
+(:func:`~.update_paths.exploration.prefetch_actions`; a seed whose observation, step count or actor changed since
+computes its own); each seed's exploration noise is its own draw.
 
 **Random numbers.** Each model draws from its own streams (:class:`~sb3_td3x.common.random_streams.RandomStreams`),
 detached right after ``make_model`` built it, where its lone run stands. Code that may draw from the global generators
@@ -42,7 +45,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch as th
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.noise import NormalActionNoise
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
@@ -98,8 +100,8 @@ class SeedBatch:
     :param make_model: builds seed ``seed``'s model, as its lone run would (``TD3X(..., seed=seed)`` on its own
         environment). It is called once per seed, in order; the caller's global random state is put back after
     :param seeds: the seeds, distinct
-    :param collect_threads: threads the seeds collect in (see the module's docstring): None, one per torch thread of
-        the process (``torch.get_num_threads()``) at most one per seed; 1: one after the other, in the caller's thread
+    :param collect_threads: threads the seeds collect in, at most one per seed (see the module's docstring); 1, the
+        default: one after the other, in the caller's thread
     :param batched_actions: pi(s) of all seeds in one batched product per layer: None (default) on a GPU, True also
         on a CPU (there to float rounding, not bit for bit: each seed's own 2-D products are its lone run's), False
         never
@@ -110,7 +112,7 @@ class SeedBatch:
         make_model: Callable[[int], OffPolicyAlgorithm],
         seeds: Sequence[int],
         *,
-        collect_threads: int | None = None,
+        collect_threads: int = 1,
         batched_actions: bool | None = None,
     ):
         seeds = self._check_seeds(seeds)
@@ -137,7 +139,7 @@ class SeedBatch:
         random_streams: Sequence[RandomStreams] | None = None,
         seeds: Sequence[int] | None = None,
         *,
-        collect_threads: int | None = None,
+        collect_threads: int = 1,
         batched_actions: bool | None = None,
     ) -> SeedBatch:
         """A batch of models built elsewhere (loaded from checkpoints, ...).
@@ -172,15 +174,13 @@ class SeedBatch:
         models: list[OffPolicyAlgorithm],
         streams: list[RandomStreams],
         seeds: list[int],
-        collect_threads: int | None,
+        collect_threads: int,
         batched_actions: bool | None,
     ) -> None:
-        if collect_threads is not None and (
-            not isinstance(collect_threads, (int, np.integer)) or isinstance(collect_threads, bool) or collect_threads < 1
-        ):
+        if not isinstance(collect_threads, (int, np.integer)) or isinstance(collect_threads, bool) or collect_threads < 1:
             raise ValueError(
-                f"SeedBatch: collect_threads={collect_threads!r}; give a number of threads >= 1 (1: the seeds collect "
-                "one after the other), or None for one per torch thread."
+                f"SeedBatch: collect_threads={collect_threads!r}; give a number of threads >= 1 (1, the default: the "
+                "seeds collect one after the other in this thread)."
             )
         if batched_actions not in (None, True, False):
             raise ValueError(f"SeedBatch: batched_actions={batched_actions!r}; give None (on a GPU), True or False.")
@@ -200,7 +200,7 @@ class SeedBatch:
         self.update_reason: str | None = None
         #: Seed index -> the exception that stopped it (``learn(keep_going=True)``).
         self.errors: dict[int, BaseException] = {}
-        self.collect_threads = None if collect_threads is None else int(collect_threads)
+        self.collect_threads = int(collect_threads)
         self.batched_actions = batched_actions
         #: How the last ``learn()`` collected: threads used and seeds in them, whether pi(s) was batched, and why.
         self.collection: str | None = None
@@ -357,14 +357,13 @@ class SeedBatch:
     def _collection_threads(self) -> Iterator[ThreadPoolExecutor | None]:
         """The threads of this ``learn()`` call's collection (None: the caller's alone), and :attr:`collection` set."""
         in_threads = [i for i in range(len(self.models)) if not self._globals[i]]
-        wanted = self.collect_threads if self.collect_threads is not None else th.get_num_threads()
-        threads = min(wanted, len(in_threads))
+        threads = min(self.collect_threads, len(in_threads))
         on_gpu = self.models[0].device.type == "cuda"
         batched = on_gpu if self.batched_actions is None else self.batched_actions
         self._batched_actions = batched and all(isinstance(m, TD3X) for m in self.models)
         actions = "pi(s) batched across seeds" if self._batched_actions else "pi(s) per seed"
         if threads < 2:
-            why = "one torch thread" if wanted < 2 else "fewer than two seeds whose code draws only from their streams"
+            why = "collect_threads=1" if self.collect_threads < 2 else "fewer than two seeds whose code draws only from their streams"
             self.collection = f"one seed after the other ({why}); {actions}"
             yield None
             return

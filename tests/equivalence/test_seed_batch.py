@@ -102,6 +102,7 @@ def test_a_batch_computes_the_lone_runs_bit_for_bit(cls, noise, path, swaps):
     caller = np.random.get_state()
     batch = SeedBatch(make, SEEDS).learn(STEPS)
     assert batch.update_path == path
+    assert batch.collection == "one seed after the other (collect_threads=1); pi(s) per seed"  # a CPU's default
     compiled = cls is LongRunTD3X  # the long run's default: each lone run and the batch compile MlpUpdate
     assert all(m.update_compiled == compiled for m in [*lone, *batch])
     assert ("compile_update=None (auto): a run of 350 training steps" in batch.update_reason) == compiled
@@ -429,7 +430,8 @@ def test_an_interrupted_wait_lets_every_collection_thread_finish(monkeypatch):
 
 
 def test_bad_collection_options_are_refused():
-    with pytest.raises(ValueError, match=r"collect_threads=0; give a number of threads >= 1"):
-        SeedBatch(factory(), SEEDS[:2], collect_threads=0)
+    for threads in (0, None, 1.5):
+        with pytest.raises(ValueError, match=rf"collect_threads={threads}; give a number of threads >= 1"):
+            SeedBatch(factory(), SEEDS[:2], collect_threads=threads)
     with pytest.raises(ValueError, match="batched_actions='yes'"):
         SeedBatch(factory(), SEEDS[:2], batched_actions="yes")
