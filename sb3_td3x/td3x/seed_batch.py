@@ -202,6 +202,7 @@ class SeedBatch:
         self.errors: dict[int, BaseException] = {}
         self.collect_threads = int(collect_threads)
         self.batched_actions = batched_actions
+        self._batched_actions = False  # this learn() call's: decided with its collection threads
         #: How the last ``learn()`` collected: threads used and seeds in them, whether pi(s) was batched, and why.
         self.collection: str | None = None
         self._update: MlpUpdate | None = None

@@ -10,8 +10,8 @@ fail when the maths differs:
   step aside to the eager update, which then trains as ``cuda_graph=False`` does;
 - the eager update (``MlpUpdate``, ``cuda_graph=False``) on the GPU: a seeded ``learn()`` ends where SB3's ``TD3`` on
   the GPU ends;
-- ``SeedBatch`` on the GPU (all seeds in one product, per-seed CUDA generators): each seed ends where its lone run
-  ends.
+- ``SeedBatch`` on the GPU (all seeds in one product, pi(s) of all seeds batched, per-seed CUDA generators), its
+  seeds collecting in turn and in threads: each seed ends where its lone run ends.
 """
 
 import numpy as np
@@ -164,7 +164,8 @@ def test_seeded_learn_on_the_gpu_matches_sb3_td3_on_the_gpu():
     assert max_difference(sb3, broken) > 1e-3
 
 
-def test_seed_batch_on_the_gpu_computes_the_lone_runs():
+@pytest.mark.parametrize("collect_threads", [1, 3])
+def test_seed_batch_on_the_gpu_computes_the_lone_runs(collect_threads):
     def make(seed, cls=TD3X):
         # cuda_graph=False: the shared update (a model in CUDA graphs, the default on a GPU, trains alone).
         return cls("MlpPolicy", "Pendulum-v1", seed=seed, learning_starts=100, batch_size=64, device="cuda",
@@ -173,8 +174,10 @@ def test_seed_batch_on_the_gpu_computes_the_lone_runs():
 
     seeds = (0, 1, 2)
     lone = [make(seed).learn(400) for seed in seeds]
-    batch = SeedBatch(make, seeds).learn(400)
+    batch = SeedBatch(make, seeds, collect_threads=collect_threads).learn(400)
     assert batch.update_path == "seed_stacked_mlp"
+    assert batch.collection.endswith("pi(s) batched across seeds")  # the GPU's default
+    assert batch.collection.startswith("3 seeds in 3 threads" if collect_threads == 3 else "one seed after the other")
     for i, (model, alone) in enumerate(zip(batch, lone)):
         assert model._n_updates == alone._n_updates == 300
         for (name, a), b in zip(alone.policy.state_dict().items(), model.policy.state_dict().values()):
