@@ -4,7 +4,9 @@ Each test builds the same models twice from one factory: once alone, ``make(seed
 and once as a batch. Collection (exploration noise, random actions before ``learning_starts``), sampling, the target
 smoothing noise and the weights must be equal seed by seed, through the shared update (``seed_stacked_mlp``), through
 the per-seed one (an overridden loss hook), and with an action noise of the user's that draws from numpy's global
-generator; and they must differ when the seeds' random streams are shared or swapped.
+generator; and they must differ when the seeds' random streams are shared or swapped. Collection in threads
+(``collect_threads``) is bit for bit too; pi(s) batched across seeds (``batched_actions``, a GPU's default) to float
+rounding, and the test sees a stale or misplaced batched row.
 """
 
 import threading
@@ -184,8 +186,24 @@ def test_learn_goes_on_and_each_seed_is_a_full_model(tmp_path):
         assert th.equal(a, b)
 
 
-def test_per_seed_evaluations_equal_the_lone_runs():
-    """An EvalCallback per seed (evaluation inside collection, on its own env) sees what the lone run sees."""
+def _collecting_threads(monkeypatch):
+    """The names of the threads each seed's transitions were stored from (TD3X's own method, patched on the class:
+    the models stay TD3X's, so their rounds may run in threads)."""
+    seen = {}
+    store = TD3X._store_transition
+
+    def recording(self, *args, **kwargs):
+        seen.setdefault(self.seed, set()).add(threading.current_thread().name)
+        return store(self, *args, **kwargs)
+
+    monkeypatch.setattr(TD3X, "_store_transition", recording)
+    return seen
+
+
+@pytest.mark.parametrize("collect_threads", [1, 3])
+def test_per_seed_evaluations_equal_the_lone_runs(collect_threads, monkeypatch):
+    """An EvalCallback per seed (evaluation inside collection, on its own env) sees what the lone run sees: the seeds
+    collecting in turn, and in threads (SB3's EvalCallback is SB3's code: its seed may collect in a thread)."""
     make = factory()
 
     def evaluation(seed):
@@ -197,9 +215,13 @@ def test_per_seed_evaluations_equal_the_lone_runs():
         callback = evaluation(seed)
         model.learn(300, callback=callback)
         lone_evals.append(callback.evaluations_results)
+    threads = _collecting_threads(monkeypatch)
     callbacks = [evaluation(seed) for seed in SEEDS]
-    SeedBatch(make, SEEDS).learn(300, callback=callbacks)
+    batch = SeedBatch(make, SEEDS, collect_threads=collect_threads).learn(300, callback=callbacks)
     assert [cb.evaluations_results for cb in callbacks] == lone_evals
+    in_threads = {name.startswith("sb3_td3x_collect") for names in threads.values() for name in names}
+    assert in_threads == {collect_threads > 1}
+    assert batch.collection.startswith("3 seeds in 3 threads" if collect_threads > 1 else "one seed after the other")
 
 
 def test_sb3_td3_runs_per_seed_and_matches():
@@ -279,20 +301,6 @@ def test_an_overridden_train_runs_and_an_overridden_learn_is_refused():
 
 
 # Collection: the seeds in threads, pi(s) batched ---------------------------------------------------------------------
-def _collecting_threads(monkeypatch):
-    """The names of the threads each seed's transitions were stored from (TD3X's own method, patched on the class:
-    the models stay TD3X's, so their rounds may run in threads)."""
-    seen = {}
-    store = TD3X._store_transition
-
-    def recording(self, *args, **kwargs):
-        seen.setdefault(self.seed, set()).add(threading.current_thread().name)
-        return store(self, *args, **kwargs)
-
-    monkeypatch.setattr(TD3X, "_store_transition", recording)
-    return seen
-
-
 def test_seeds_collecting_in_threads_compute_their_lone_runs_bit_for_bit(monkeypatch):
     """collect_threads: the seeds whose code draws only from their streams collect in threads (their environments
     step in parallel), a seed with a user's action noise in the caller's thread after them; each is its lone run."""
@@ -308,26 +316,6 @@ def test_seeds_collecting_in_threads_compute_their_lone_runs_bit_for_bit(monkeyp
     assert all(name.startswith("sb3_td3x_collect") for seed in (0, 2) for name in threads[seed])
     assert threads[1] == {threading.main_thread().name}
     assert_same_runs(batch, lone)
-
-
-def test_evaluations_in_collection_threads_equal_the_lone_runs(monkeypatch):
-    """SB3's EvalCallback (SB3's code: its seed collects in a thread) evaluates inside collection, on its own env."""
-    make = factory()
-
-    def evaluation(seed):
-        return EvalCallback(factory()(seed).get_env(), eval_freq=150, n_eval_episodes=1, verbose=0, warn=False)
-
-    lone_evals = []
-    for seed in SEEDS:
-        callback = evaluation(seed)
-        make(seed).learn(300, callback=callback)
-        lone_evals.append(callback.evaluations_results)
-    threads = _collecting_threads(monkeypatch)
-    callbacks = [evaluation(seed) for seed in SEEDS]
-    batch = SeedBatch(make, SEEDS, collect_threads=3).learn(300, callback=callbacks)
-    assert batch.collection.startswith("3 seeds in 3 threads")
-    assert all(name.startswith("sb3_td3x_collect") for names in threads.values() for name in names)
-    assert [cb.evaluations_results for cb in callbacks] == lone_evals
 
 
 class PerturbActor(BaseCallback):
