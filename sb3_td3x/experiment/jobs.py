@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import os
 import signal
+import subprocess
 import sys
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
@@ -140,11 +141,19 @@ def received() -> signal.Signals | None:
     return _stops.received
 
 
+def killed_by_its_own_requeue(error: subprocess.CalledProcessError) -> bool:
+    """Whether ``error`` is submitit's ``scontrol requeue`` killed by SIGTERM or SIGKILL (what SLURM sends to the
+    processes of a job it requeues)."""
+    command = [str(part) for part in error.cmd] if isinstance(error.cmd, (list, tuple)) else str(error.cmd).split()
+    return command[:2] == ["scontrol", "requeue"] and error.returncode in (-signal.SIGTERM, -signal.SIGKILL)
+
+
 def after_stop(exit_code: int, message: str) -> None:
     """The top level of a run or a sweep worker stopped on a signal, its checkpoint written: end the process.
 
     - submitit's signal: hand over to submitit's handler, which resubmits the function and requeues the job (or,
-      after ``max_num_timeout`` time-outs, ends it with an error); it exits this process.
+      after ``max_num_timeout`` time-outs, ends it with an error); it exits this process. Its ``scontrol requeue``
+      stopped by the requeue's own SIGTERM exits this process too, without a result.
     - SIGTERM or SIGINT inside a SLURM job: exit without a result (``SystemExit``), so that submitit reads the
       result of the job that SLURM starts again after a requeue, or sees a cancelled job end without one.
     - otherwise: return; the caller exits as it always did.
@@ -154,7 +163,23 @@ def after_stop(exit_code: int, message: str) -> None:
         return
     if got == requeue_signal() and _stops.scheduler_handler is not None:
         print(f"{message} Handing over to submitit to requeue the job.", file=sys.stderr, flush=True)
-        _stops.scheduler_handler(int(got), None)
+        try:
+            _stops.scheduler_handler(int(got), None)
+        except subprocess.CalledProcessError as error:
+            if not killed_by_its_own_requeue(error):
+                raise
+            # SLURM signals every process of a job it requeues, submitit's `scontrol requeue` among them when it has
+            # not returned yet (seen on a loaded machine): the requeue was taken. submitit would raise, and its
+            # process_job would write that error as the job's result, which whoever waits on the job reads as its
+            # end. Exit without a result instead, as submitit does after a requeue: the job's next start writes it.
+            print(
+                f"`{' '.join(map(str, error.cmd))}` was stopped by {signal.Signals(-error.returncode).name}, as SLURM "
+                "stops every process of a job it requeues: the job is requeued (or, at its time limit, ended); this "
+                "start exits without a result.",
+                file=sys.stderr,
+                flush=True,
+            )
+            raise SystemExit(-1) from None
         return
     if current_job() is not None:
         print(message, file=sys.stderr, flush=True)

@@ -7,6 +7,8 @@ environment SLURM gives a job.
 from __future__ import annotations
 
 import json
+import signal
+import subprocess
 
 import pytest
 
@@ -193,3 +195,33 @@ def test_a_requeued_worker_fails_and_queues_again_the_trial_its_earlier_start_le
     assert trials[3].user_attrs[RESUMABLE] and trials[3].user_attrs["run_dir"] == trials[0].user_attrs["run_dir"]
     assert trials[3].params == trials[0].params
     assert fail_trials_of_earlier_start(study) == []  # once
+
+
+@pytest.mark.parametrize(
+    ("returncode", "command", "ends"),
+    [
+        (-signal.SIGTERM, ["scontrol", "requeue", "42"], SystemExit),  # the requeue's own SIGTERM: requeued
+        (-signal.SIGKILL, ["scontrol", "requeue", "42"], SystemExit),
+        (1, ["scontrol", "requeue", "42"], subprocess.CalledProcessError),  # refused: submitit's error stands
+        (-signal.SIGTERM, ["scontrol", "show", "job"], subprocess.CalledProcessError),
+    ],
+)
+def test_submitits_requeue_stopped_by_the_requeue_exits_without_a_result(job, monkeypatch, capsys, returncode, command, ends):
+    """submitit's ``scontrol requeue`` stopped by the SIGTERM that SLURM sends to every process of a job it requeues
+    (a cluster test met it on a loaded machine): the job is requeued, so the process exits without a result
+    (SystemExit, as submitit after a requeue), not with submitit's error, which would be read as the job's end."""
+    job(0)
+    monkeypatch.setenv("SUBMITIT_FOLDER", "/tmp/submitit")
+    stops = jobs._Stops()
+    stops.received = jobs.requeue_signal()
+
+    def handler(signum, frame):
+        raise subprocess.CalledProcessError(returncode, command)
+
+    stops.scheduler_handler = handler
+    monkeypatch.setattr(jobs, "_stops", stops)
+    with pytest.raises(ends) as raised:
+        jobs.after_stop(0, "Stopped on SIGUSR2.")
+    if ends is SystemExit:
+        assert raised.value.code == -1
+        assert "this start exits without a result" in capsys.readouterr().err
