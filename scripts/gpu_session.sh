@@ -50,16 +50,21 @@ if [ "$part" = measure ]; then
   timeout 100 python3 benchmarks/throughput.py --env Ant-v5 HalfCheetah-v5 --chunks 2 --chunk-steps 1000 \
     --warmup 1000 --td3x cuda_graph=false --json "$OUT/throughput.json" >> "$OUT/throughput.txt" 2>&1
   echo "throughput cuda_graph=false rc=$?" >> "$OUT/throughput.txt"
-  # 2. Sixteen Ant seeds every way: one SeedBatch (pi(s) batched; the seeds collecting in turn, then in 16 threads),
-  # 16 TD3X and 16 SBX processes, with and without CUDA MPS; one SB3 process is the baseline.
-  modes="batched batched_threads td3x_procs"
-  python3 -c "import sbx" 2>/dev/null && modes="$modes sbx_procs"
-  budget=$(left 570)
-  timeout $(( budget > 30 ? budget : 30 )) python3 benchmarks/seeds_scaling.py --env Ant-v5 --batch-size 256 \
-    --device cuda --seeds 16 --modes $modes --mps both --steps 200 --warmup 100 \
-    --json "$OUT/seeds16_mps.json" > "$OUT/seeds16_mps.txt" 2>&1
-  echo "seeds16 rc=$?" >> "$OUT/seeds16_mps.txt"
-  tail -n 30 "$OUT"/throughput.txt; tail -n 16 "$OUT"/seeds16_mps.txt
+  # 2. Sixteen Ant seeds every way, the goals first: 16 TD3X and 16 SBX processes under CUDA MPS and one
+  # SeedBatch (pi(s) batched, the seeds in turn); then the processes without MPS and the batch collecting in 16
+  # threads. One SB3 process is each call's baseline. Each measurement's line is printed as it ends (a call cut by its
+  # time limit keeps the lines before).
+  sbx=""; python3 -c "import sbx" 2>/dev/null && sbx="sbx_procs"
+  seeds16() {  # $1: the call's time budget, $2: json name, the rest: seeds_scaling arguments
+    local budget=$1 name=$2; shift 2
+    timeout $(( budget > 30 ? budget : 30 )) python3 benchmarks/seeds_scaling.py --env Ant-v5 --batch-size 256 \
+      --device cuda --seeds 16 --steps 200 --warmup 100 --learning-starts 500 --json "$OUT/$name.json" "$@" \
+      >> "$OUT/seeds16_mps.txt" 2>&1
+    echo "seeds16 $name rc=$?" >> "$OUT/seeds16_mps.txt"
+  }
+  seeds16 "$(left 480)" seeds16_mps_on --mps on --modes td3x_procs $sbx batched
+  seeds16 "$(left 570)" seeds16_mps_off --mps off --modes td3x_procs $sbx batched_threads
+  tail -n 30 "$OUT"/throughput.txt; grep -E "N=|rc=" "$OUT"/seeds16_mps.txt
 elif [ "$part" = tests_cuda ]; then
   # The GPU test layer, then every test that names CUDA, a device or graphs.
   timeout 300 python3 -m pytest -q -p no:cacheprovider -n 6 --timeout 160 -rs tests/gpu \
