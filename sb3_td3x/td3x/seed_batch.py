@@ -20,8 +20,8 @@ environments step in parallel. Only seeds whose round code draws nothing from th
 numbers*) collect in threads, the others after them in the caller's thread. A thread starts with the caller's
 floating-point environment, and each seed's code runs as its lone run's, so a seed computes the same bits in a
 thread. Threads are not the default: on a 2-core CPU they made a batch of 8 Hopper seeds 1.8 times slower (the
-seeds' Python contends for the lock, and the extra OpenMP teams make torch's threads stop spinning between the
-update's kernels; docs/seeds.md). On a GPU (``batched_actions``) pi(s) of all seeds is computed at the start of a
+seeds' Python runs in turn under the lock anyway, and torch's OpenMP threads then wait longer between the update's
+kernels; docs/performance.md). On a GPU (``batched_actions``) pi(s) of all seeds is computed at the start of a
 round in one batched product per layer, the actors' weights stacked
 (:func:`~.update_paths.exploration.prefetch_actions`; a seed whose observation, step count or actor changed since
 computes its own); each seed's exploration noise is its own draw.
