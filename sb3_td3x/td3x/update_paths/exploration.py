@@ -63,11 +63,13 @@ class PrefetchedAction:
     """pi(s) of a model's next collection step, computed ahead of it with other seeds' (:func:`prefetch_actions`).
 
     Valid while nothing it was computed from has changed: the same observation array (``_last_obs``, the same
-    object), the same ``num_timesteps``, the same shortcut, and the actor's parameters neither changed in place (their
-    version counters) nor replaced (their memory) since."""
+    object), the same ``num_timesteps``, the same shortcut, no actor update since (``_n_actor_updates``: a CUDA graph's
+    replay writes the weights without bumping their version counters), and the actor's parameters neither changed in
+    place (their version counters) nor replaced (their memory) since."""
 
     obs: np.ndarray
     num_timesteps: int
+    actor_updates: int
     actor: DirectMlpActor
     versions: tuple[int, ...]
     actions: np.ndarray  # (n_envs, *action_shape), in [-1, 1]
@@ -76,6 +78,7 @@ class PrefetchedAction:
         return (
             self.obs is model._last_obs
             and self.num_timesteps == model.num_timesteps
+            and self.actor_updates == model._n_actor_updates
             and self.actor is actor
             and self.versions == _versions(actor)
         )
@@ -131,6 +134,7 @@ def prefetch_actions(models: Sequence[Any]) -> list[int]:
         model._prefetched_action = PrefetchedAction(
             model._last_obs,
             model.num_timesteps,
+            model._n_actor_updates,
             actor,
             _versions(actor),
             actions[row].reshape((n_envs, *model.action_space.shape)),
