@@ -53,7 +53,17 @@ def requeue_now(job_id: str, how: str = "scontrol requeue") -> None:
         command = ["scancel", "--signal=USR2", job_id]
     subprocess.run(command, check=True, capture_output=True, timeout=30)
     wait_for(lambda: job_fields(job_id).get("JobState") == "PENDING", f"job {job_id} to be pending again", 90)
+    # slurmd refuses to launch a job again whose credential it revoked at the kill within the same second as the new
+    # credential ("Job 166 already killed, do not launch batch job": the job then ends FAILED without a result; seen
+    # on a loaded machine): wait for the node to finish the old start, then let a second pass (what SLURM's own delay
+    # of a requeued job's start, its BeginTime, leaves room for).
+    wait_for(lambda: "completing" not in _node_states(), "the node to finish the job's earlier start", 90)
+    time.sleep(1.5)
     subprocess.run(["scontrol", "update", f"jobid={job_id}", "StartTime=now"], check=True, capture_output=True, timeout=30)
+
+
+def _node_states() -> str:
+    return subprocess.run(["sinfo", "-h", "-o", "%T"], capture_output=True, text=True, timeout=30).stdout.lower()
 
 
 def python() -> str:
