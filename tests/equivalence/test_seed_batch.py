@@ -368,6 +368,33 @@ def test_batched_actions_compute_what_each_seed_computes(monkeypatch):
     assert_same_runs(batch, lone, exact=False)
 
 
+def _halved_actor(model):
+    """A user's change on the instance: the actor's output halved (collection must call it as written)."""
+    forward = model.actor.forward
+    model.actor.forward = lambda obs: 0.5 * forward(obs)
+    return model
+
+
+@pytest.mark.parametrize("change", ["activation", "actor_forward"])
+def test_batched_actions_step_aside_for_a_users_actor(change, monkeypatch):
+    """A Tanh MLP actor, or an actor forward set on the instance: batched pi(s) (which computes a ReLU MLP from the
+    Linear layers) must not stand in for it. Each seed then runs SB3's predict, as written, and equals its lone run
+    bit for bit; a batched row taken anyway would act without the change, and the comparison would fail."""
+
+    def make(seed):
+        if change == "activation":
+            return factory(policy_kwargs={"net_arch": [32, 32], "activation_fn": th.nn.Tanh})(seed)
+        return _halved_actor(factory()(seed))
+
+    lone = lone_runs(make, steps=250)
+    taken = _count_prefetched(monkeypatch)
+    batch = SeedBatch(make, SEEDS, batched_actions=True).learn(250)
+    assert batch.collection.endswith("pi(s) batched across seeds")
+    assert all(m.exploration_path == "sb3_predict" for m in batch)
+    assert taken == {}  # no row was computed, so none was offered
+    assert_same_runs(batch, lone)
+
+
 def test_the_batched_actions_test_fails_when_the_rows_are_mixed_up(monkeypatch):
     """The seeds' rows of the batched pi(s) swapped: the collections differ from the lone runs, and it is seen."""
     from dataclasses import replace

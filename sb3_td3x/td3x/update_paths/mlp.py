@@ -685,10 +685,11 @@ def _joined(parts: list[tuple[Any, ...]]) -> tuple[Any, ...]:
     return tuple(join([part[k] for part in parts]) for k in range(len(parts[0])))
 
 
-def _architecture(model: TD3X) -> list[list[tuple[int, ...]]]:
-    """The weight shapes of the actor and of each critic."""
+def _architecture(model: TD3X) -> list[list[tuple[int, ...]] | None]:
+    """The weight shapes of the actor and of each critic; None for a network that is not a ReLU MLP (``why_not``
+    names it)."""
     nets = [relu_mlp_layers(model.actor.mu, nn.Tanh), *(relu_mlp_layers(q, None) for q in model.critic.q_networks)]
-    return [[tuple(lin.weight.shape) for lin in net] for net in nets]  # type: ignore[union-attr]
+    return [None if net is None else [tuple(lin.weight.shape) for lin in net] for net in nets]
 
 
 def _compact_state_dict(module: nn.Module, state_dict: dict[str, Any], prefix: str, local_metadata: Any) -> None:
