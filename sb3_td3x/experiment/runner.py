@@ -13,7 +13,6 @@ import os
 import platform
 import subprocess
 import sys
-import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -418,7 +417,6 @@ class _SeedReports:
         self.training: set[int] = set()
         self.error: BaseException | None = None
         self.interrupted = False
-        self._lock = threading.RLock()  # the seeds evaluate in the batch's collection threads
 
     def listener(self, index: int) -> Callable[[dict[str, float]], None]:
         return lambda result: self.on_result(index, result)
@@ -427,17 +425,15 @@ class _SeedReports:
         """Seed ``index`` stopped early. Diverged (or failed): the aggregates go on over the others. Interrupted (a
         signal, or ``report`` raised): the whole batch is stopping, so no aggregate of the seeds that evaluated
         before the others stopped is reported."""
-        with self._lock:
-            if isinstance(error, TrainingInterrupted):
-                self.interrupted = True
-                return
-            self.training.discard(index)
-            self._flush()
+        if isinstance(error, TrainingInterrupted):
+            self.interrupted = True
+            return
+        self.training.discard(index)
+        self._flush()
 
     def on_result(self, index: int, result: dict[str, float]) -> None:
-        with self._lock:
-            self.pending.setdefault(int(result["timesteps"]), {})[index] = float(result["mean_return"])
-            self._flush()
+        self.pending.setdefault(int(result["timesteps"]), {})[index] = float(result["mean_return"])
+        self._flush()
 
     def _flush(self) -> None:
         if self.interrupted:

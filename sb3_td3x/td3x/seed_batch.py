@@ -327,7 +327,7 @@ class SeedBatch:
         ]
         self._choose_update()  # after _setup_learn: auto compilation depends on the run's length
         active = [run for run in runs if not run.finished]
-        with self._collection_threads() as pool:
+        with self._collection() as pool:
             while active:
                 self._train(self._collect_round(active, log_interval, keep_going, pool), keep_going)
                 active = [r for r in active if not (r.finished or r.failed) and r.model.num_timesteps < r.total_timesteps]
@@ -355,8 +355,9 @@ class SeedBatch:
         return _SeedRun(index, model, total, cb, finished=model.num_timesteps >= total)
 
     @contextlib.contextmanager
-    def _collection_threads(self) -> Iterator[ThreadPoolExecutor | None]:
-        """The threads of this ``learn()`` call's collection (None: the caller's alone), and :attr:`collection` set."""
+    def _collection(self) -> Iterator[ThreadPoolExecutor | None]:
+        """How this ``learn()`` call collects: its threads (None: the caller's alone) and whether pi(s) is batched;
+        :attr:`collection` says so."""
         in_threads = [i for i in range(len(self.models)) if not self._globals[i]]
         threads = min(self.collect_threads, len(in_threads))
         on_gpu = self.models[0].device.type == "cuda"
@@ -394,9 +395,10 @@ class SeedBatch:
                 if steps := self._gradient_steps_wanted(run, *outcome, keep_going):
                     wants.append((run, steps))
             return wants
-        finally:
-            for run in active:
-                run.model.__dict__.pop("_prefetched_action", None)
+        finally:  # a row a seed did not take (it stopped, or took SB3's path) is not kept to a later round
+            if self._batched_actions:
+                for run in active:
+                    run.model.__dict__.pop("_prefetched_action", None)
 
     def _rollout(self, run: _SeedRun, log_interval: int) -> tuple[RolloutReturn | None, Exception | None]:
         """One rollout of ``run``'s seed, as SB3's loop collects it, or what it raised."""

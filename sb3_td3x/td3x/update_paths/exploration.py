@@ -89,15 +89,12 @@ def _versions(actor: DirectMlpActor) -> tuple[int, ...]:
     return tuple(n for layer in actor.layers for p in (layer.weight, layer.bias) for n in (p._version, p.data_ptr()))
 
 
-def why_not_prefetch(model: Any) -> str | None:
-    """Why ``model``'s next collection step would not take a prefetched pi(s) (it computes its own), or None."""
-    if model.num_timesteps < model.learning_starts:
-        return "its next action is a random one (before learning_starts)"
-    if not isinstance(model._last_obs, np.ndarray):
-        return "its observations are not one array"
-    if model._exploration()[0] is None:
-        return f"collection runs SB3's predict ({model._exploration()[2]})"
-    return None
+def _prefetchable(model: Any) -> DirectMlpActor | None:
+    """The shortcut ``model``'s next collection step takes, or None where it takes none: a random action (before
+    ``learning_starts``), observations that are not one array, or SB3's predict (a user's actor or predict path)."""
+    if model.num_timesteps < model.learning_starts or not isinstance(model._last_obs, np.ndarray):
+        return None
+    return model._exploration()[0]
 
 
 def _kind(model: Any, actor: DirectMlpActor) -> tuple[Any, ...]:
@@ -116,8 +113,8 @@ def prefetch_actions(models: Sequence[Any]) -> list[int]:
     The batched product is the stacked update's (:meth:`MlpStack.forward`): what each seed's own 2-D products
     compute, to float rounding.
     """
-    ready = [i for i, m in enumerate(models) if why_not_prefetch(m) is None]
-    actors = [models[i]._exploration()[0] for i in ready]
+    prefetchable = [(i, actor) for i, m in enumerate(models) if (actor := _prefetchable(m)) is not None]
+    ready, actors = [i for i, _ in prefetchable], [actor for _, actor in prefetchable]
     kinds = {_kind(models[i], actor) for i, actor in zip(ready, actors)}
     if len(ready) < 2 or len(kinds) != 1:
         return []
