@@ -87,14 +87,20 @@ class HeldSignals:
     def _deliver_again(previous: Any) -> Any:
         """An unraisable hook that sends a signal whose :class:`SignalInterrupt` Python dropped (raised in a finalizer or
         a weakref callback) again, from another thread a millisecond later: it is then handled in the main thread's
-        own code, once the callback has returned. Anything else goes to ``previous``."""
+        own code, once the callback has returned. A signal that lands while the hook starts that thread is sent again
+        too. Anything else goes to ``previous``."""
 
         def hook(unraisable: Any) -> None:
-            if isinstance(unraisable.exc_value, SignalInterrupt):
-                signum = getattr(signal, unraisable.exc_value.signal_name)
-                threading.Timer(0.001, os.kill, (os.getpid(), signum)).start()
+            if not isinstance(unraisable.exc_value, SignalInterrupt):
+                previous(unraisable)
                 return
-            previous(unraisable)
+            dropped = [unraisable.exc_value]
+            while dropped:
+                signum = getattr(signal, dropped.pop().signal_name)
+                try:
+                    threading.Timer(0.001, os.kill, (os.getpid(), signum)).start()
+                except SignalInterrupt as another:  # a second signal while the timer starts: raised here, in the
+                    dropped.append(another)  # hook, where Python drops it (and prints it) too; sent again as well
 
         return hook
 
