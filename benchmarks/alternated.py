@@ -13,8 +13,8 @@ process runs at a time, and a slow phase of the machine hits the chunks around i
 median steps/s, its cores used (process CPU seconds per second) and the median of its per-chunk ratios to the first.
 
 Use it where one process cannot hold both sides (two commits of this package), or to compare across processes: on
-the project's virtual machines a process can run for minutes at one of two speeds (docs/performance.md, "the host
-has two speeds"), so only alternated chunks, compared chunk by chunk, say which side is faster.
+the project's virtual machines a process can run for minutes at one of two speeds (docs/performance_log.md, "the
+host has two speeds"), so only alternated chunks, compared chunk by chunk, say which side is faster.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Where a SeedBatch's time goes: cProfile of N seeds trained together, collection against the update.
 
-    python benchmarks/seeds_profile.py --seeds 16 --device cuda          # what docs/performance.md quotes (H100)
+    python benchmarks/seeds_profile.py --seeds 16 --device cuda          # what docs/performance_log.md quotes (H100)
     python benchmarks/seeds_profile.py --seeds 2 --device cpu --env Hopper-v5
     python benchmarks/seeds_profile.py --seeds 8 --device cpu --env Hopper-v5 --threads 2 --collect-threads 2
 

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Issue 36's table on this machine's CPU: TD3X's defaults against SB3's and SBX's TD3 (throughput.py, one process,
+# The CPU tables of docs/performance.md on this machine's CPU: TD3X's defaults against SB3's and SBX's TD3 (throughput.py, one process,
 # chunks alternated), many seeds against SBX's separate processes (seeds_scaling.py), and where a step goes
 # (step_split.py). The CPU changes between sessions: every output names it. Needs SBX (pip install -e ".[peers]")
 # and a quiet machine (nothing else running: no suite, no training, no helper). About 25 minutes on 2 cores.
