@@ -227,6 +227,36 @@ def test_images_referenced_in_markdown_exist():
     assert not missing
 
 
+# The project's own work items ("issue 36", "#35") mean nothing to a reader. The only numbered references allowed are
+# other projects' issues, cited as such: Hydra's, in docs/sweeps.md.
+INTERNAL_ISSUE = re.compile(r"\b[Ii]ssues? \d+|(?<![\w/&])#\d+\b")
+OTHER_PROJECTS_ISSUES = {"#1710", "#1954", "#2237"}
+
+
+@pytest.mark.parametrize("path", [*sorted(DOCS.glob("*.md")), ROOT / "README.md"], ids=lambda p: p.name)
+def test_no_internal_issue_numbers(path: Path):
+    found = [
+        f"line {number}: {match.group()!r}"
+        for number, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1)
+        for match in INTERNAL_ISSUE.finditer(re.sub(r"https?://\S+", "", line))
+        if match.group() not in OTHER_PROJECTS_ISSUES
+    ]
+    assert not found, f"{path.name} names the project's issues; say what was measured or built instead: {found}"
+
+
+def test_performance_page_is_a_summary_with_a_table_per_kind_of_machine():
+    """docs/performance.md is read in a minute: a table for each kind of machine measured; the full entries live in
+    docs/performance_log.md."""
+    text = (DOCS / "performance.md").read_text(encoding="utf-8")
+    assert len(text.splitlines()) <= 250
+    sections = re.split(r"^## ", text, flags=re.MULTILINE)
+    for machine in ("Intel Xeon", "AMD EPYC", "NVIDIA GPU"):
+        section = next((s for s in sections if s.startswith(machine)), None)
+        assert section is not None, f"no section for {machine}"
+        assert re.search(r"^\| date \|", section, flags=re.MULTILINE), f"{machine}: no table with dated rows"
+    assert "(performance_log.md)" in text
+
+
 # The examples of docs/extending.md ----------------------------------------------------------------------------------
 
 
