@@ -9,21 +9,42 @@ export MUJOCO_GL="${MUJOCO_GL:-egl}"
 export PYTHONUNBUFFERED=1
 export NO_MKDOCS_2_WARNING=1
 
-# PostgreSQL for the many-workers sweep test: started from Debian's packages in CI (or when asked for).
+# PostgreSQL (the many-workers sweep test) and a one-node SLURM (the cluster tests, tests/cluster): started from
+# Debian's packages in CI, or when asked for. Their output (apt-get, initdb, the daemons) goes to one log file, shown
+# only if a start fails; one line names it.
+services_log=""
+started=()
+start_service() {  # NAME VARIABLE SCRIPT: run SCRIPT, which prints the value of VARIABLE on stdout
+  local value
+  [ -n "$services_log" ] || services_log="$(mktemp "${TMPDIR:-/tmp}/sb3-td3x-services.XXXXXX")"
+  echo "== $3" >>"$services_log"
+  if ! value="$(bash "$3" 2>>"$services_log")"; then
+    echo "scripts/test.sh: $1 did not start. Its output ($services_log):" >&2
+    cat "$services_log" >&2
+    exit 1
+  fi
+  export "$2=$value"
+  started+=("$1")
+}
 if [ -z "${SB3_TD3X_TEST_PG_URL:-}" ] && { [ "${CI:-}" = "true" ] || [ "${SB3_TD3X_START_POSTGRES:-}" = "1" ]; } && [ -f .ci/postgres.sh ]; then
-  # shellcheck disable=SC1091
-  . .ci/postgres.sh
+  start_service PostgreSQL SB3_TD3X_TEST_PG_URL .ci/postgres.sh
 fi
-
-# A one-node SLURM for the cluster tests (tests/cluster): started from Debian's packages in CI (or when asked for).
 if [ -z "${SLURM_CONF:-}" ] && { [ "${CI:-}" = "true" ] || [ "${SB3_TD3X_START_SLURM:-}" = "1" ]; } && [ -f .ci/slurm.sh ]; then
-  # shellcheck disable=SC1091
-  . .ci/slurm.sh
+  start_service SLURM SLURM_CONF .ci/slurm.sh
+fi
+if [ "${#started[@]}" -gt 0 ]; then
+  names="${started[*]}"
+  echo "Started for the tests: ${names// / and } (their output: $services_log)"
 fi
 
-# The documentation must build with warnings as errors.
+# The documentation must build with warnings as errors. (Not --quiet: it hides the warnings from --strict, which
+# then passes a broken link.) The build's output is shown only if it fails.
 if [ -f mkdocs.yml ]; then
-  mkdocs build --strict --quiet --site-dir site
+  if ! docs_out="$(mkdocs build --strict --site-dir site 2>&1)"; then
+    echo "$docs_out" >&2
+    echo "scripts/test.sh: the documentation does not build (mkdocs build --strict)" >&2
+    exit 1
+  fi
 fi
 
 # Two processes for two cores; each test process uses one torch thread (tests/conftest.py).
