@@ -61,7 +61,7 @@ def main() -> None:
     profile.disable()
     wall = time.perf_counter() - start
     print(f"{args.env}, {args.seeds} seeds on {args.device}: {args.seeds * args.steps / wall:.1f} seed-steps/s under "
-          f"cProfile, {1000 * wall / args.steps:.1f} ms per round; update path {batch.update_path}; "
+          f"cProfile, {1000 * wall / args.steps:.1f} ms per round; update path {batch[0].update_path}; "
           f"collection: {batch.collection}; {th.get_num_threads()} torch threads")
     stats = pstats.Stats(profile)
     stats.sort_stats("cumulative").print_stats(args.rows)

@@ -15,9 +15,8 @@ reset_num_timesteps=False)``, a GPU synchronized at both ends). Four ways to tra
 
 - ``batched``: one process, ``SeedBatch(make_model, seeds=range(N)).learn(...)``, torch threads = ``--threads``
   (default: every core this process may run on), with SeedBatch's defaults: the seeds collect one after the other,
-  pi(s) batched across seeds on a GPU. Its rate is N * steps / the timed call's wall time. The table
-  notes a batch whose gradient steps did not run batched (``update_path`` other than ``seed_stacked_mlp``; with one
-  seed it is ``per_seed``, the lone update).
+  pi(s) batched across seeds on a GPU, each seed's gradient steps its own update. Its rate is N * steps / the timed
+  call's wall time. The table notes the seeds' update paths.
 - ``batched_threads``: the same batch with the seeds collecting in ``--threads`` threads (``collect_threads``).
 - ``batched_per_core``: ``min(N, threads)`` processes side by side, each a ``SeedBatch`` of every P-th seed, with
   the threads shared among them (one each on a CPU with as many cores as threads): what ``python run.py -m
@@ -50,7 +49,7 @@ window end - first window start), and the windows' overlap (the time all N were 
 clipped to 0.5, exploration N(0, 0.1), train_freq 1, one gradient step per environment step; the environment,
 batch size, replay buffer size and ``learning_starts`` from the command line (``learning_starts`` default 1000, as
 in ``benchmarks/throughput.py``; the paper's 10k on Ant would only lengthen the untimed warm-up). TD3X runs with its
-defaults otherwise (fp32, ``MlpUpdate``). Seed i is seed i in every mode.
+defaults otherwise (fp32, the update of a long run: compiled on a CPU). Seed i is seed i in every mode.
 
 Every measurement runs in fresh processes (the batched one too), so none inherits another's thread pool, allocator
 or caches. On CPU they start from a fork server that imported torch, SB3 and this package once; on a GPU (or where
@@ -200,7 +199,7 @@ def worker(config: Config, mode: str, seeds: list[int], threads: int, pad: bool,
                 "start": wall_start,
                 "end": wall_end,
                 "threads": th.get_num_threads(),
-                "update_path": getattr(trainer, "update_path", None),
+                "update_path": trainer[0].update_path if isinstance(trainer, SeedBatch) else getattr(trainer, "update_path", None),
                 "collection": getattr(trainer, "collection", None),
                 "pid": os.getpid(),
             }
@@ -360,8 +359,8 @@ def print_table(rows: dict[tuple[str, int], dict], seeds: list[int]) -> None:
     for (mode, n), row in sorted(rows.items(), key=order):
         rate = row["seed_steps_per_s"]
         note = ""
-        if mode in BATCHED_MODES and row["processes"] < n and any(p != "seed_stacked_mlp" for p in row["update_paths"]):
-            note = f"  (not batched: update_path {row['update_paths']})"
+        if mode in BATCHED_MODES and row["processes"] < n:
+            note = f"  (update_path {sorted(set(map(str, row['update_paths'])))})"
         print(
             f"{n:>3}  {mode:<16} {row['processes']:>7} x {row['threads_per_process']:<5} {rate:>13.1f} {rate / n:>9.1f} "
             f"{rate / baseline:>14.2f}x{note}"

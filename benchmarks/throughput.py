@@ -126,13 +126,13 @@ def gradient_step_time(model: TD3, steps: int) -> float:
 
 
 _LINEAR_POINTWISE = getattr(getattr(th.ops, "mkldnn", None), "_linear_pointwise", None)
-# Registered once per process (this file may be loaded twice: imported by benchmarks/bare_step.py and by a test).
+# Registered once per process (this file may be loaded twice: by a benchmark importing it and by a test).
 if _LINEAR_POINTWISE is not None and _LINEAR_POINTWISE not in flop_counter.flop_registry:
     from torch.utils.flop_counter import register_flop_formula
 
     @register_flop_formula(_LINEAR_POINTWISE)
     def _linear_pointwise_flops(x_shape, w_shape, *args, **kwargs) -> int:
-        """oneDNN's fused linear (MlpUpdate's hidden layers on CPU): 2 M N K, like addmm."""
+        """oneDNN's fused linear (what Inductor may call for a linear layer on a CPU): 2 M N K, like addmm."""
         return 2 * (x_shape[0] * x_shape[1]) * w_shape[0] if len(x_shape) == 2 else 0
 
 
@@ -324,7 +324,12 @@ class InSequenceReplay:
 
     def replay(self, which: str, clock: dict | None = None) -> None:
         """One replay of the recorded operators (``"kernels"``) or of their products (``"products"``); with a
-        ``clock`` dict, each operator's time is added to ``clock[name]``."""
+        ``clock`` dict, each operator's time is added to ``clock[name]``. Without autograd: the recorded operators
+        include the backward pass's own, replayed as kernels."""
+        with th.no_grad():
+            self._replay(which, clock)
+
+    def _replay(self, which: str, clock: dict | None) -> None:
         outs: list = []
         for func, args, kwargs, links, dead in self.plans[which]:
             if links:

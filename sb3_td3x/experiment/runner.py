@@ -576,13 +576,8 @@ def _train_seeds(
     batch = SeedBatch.from_models(
         [runs[i].model for i in training], [streams[i] for i in training], [seeds[i] for i in training]
     )
-    reason = batch.why_not_stacked()
     if len(training) > 1:
-        log.info(
-            "Training seeds %s together in one process: %s",
-            [seeds[i] for i in training],
-            "the gradient steps batched (seed_stacked_mlp)" if reason is None else f"each seed's update alone ({reason})",
-        )
+        log.info("Training seeds %s together in one process, each with its own update", [seeds[i] for i in training])
     with StopOnSignal(*[runs[i].checkpointer for i in training]):  # type: ignore[misc]
         batch.learn(
             total_timesteps=[runs[i].remaining for i in training],

@@ -7,12 +7,11 @@
     batch = SeedBatch(lambda seed: TD3X("MlpPolicy", "Hopper-v5", seed=seed), seeds=[0, 1, 2, 3, 4])
     batch.learn(200_000)
     batch[2].save("hopper_seed2")             # seed 2 is a full TD3X: predict, save, evaluate_policy, TD3X.load
-    batch.update_path, batch.update_reason     # how the gradient steps ran, and why
+    batch[2].update_path, batch[2].update_reason  # how its gradient steps ran, and why
 
-Each round, every seed collects its rollout (its model's ``collect_rollouts``), then the seeds' gradient steps run
-through one :class:`~.update_paths.mlp.MlpUpdate` of all their models (``"seed_stacked_mlp"``) where it trains every
-one of them, else through each model's own ``train()`` (``"per_seed"``, with the reason). On a CPU seed ``i`` then
-computes its lone run's numbers bit for bit; on a GPU, where the seeds share each product, to float rounding.
+Each round, every seed collects its rollout (its model's ``collect_rollouts``), then each seed takes its gradient
+steps with its model's own ``train()``: the update its lone run would run (compiled on a long run, on a CPU), so seed
+``i`` computes its lone run's numbers bit for bit.
 
 **Collection.** The seeds collect one after the other in the caller's thread, or side by side in
 ``collect_threads`` threads: MuJoCo's step and torch's kernels release Python's lock, so there the seeds'
@@ -22,7 +21,7 @@ floating-point environment, and each seed's code runs as its lone run's, so a se
 thread. Threads are not the default: on a 2-core CPU they made a batch of 8 Hopper seeds 1.8 times slower (the
 seeds' Python runs in turn under the lock anyway, and torch's OpenMP threads then wait longer between the update's
 kernels; docs/performance.md). On a GPU (``batched_actions``) pi(s) of all seeds is computed at the start of a
-round in one batched product per layer, the actors' weights stacked
+round in one call of the actor, vmapped over the seeds' stacked parameters
 (:func:`~.update_paths.exploration.prefetch_actions`; a seed whose observation, step count or actor changed since
 computes its own); each seed's exploration noise is its own draw.
 
@@ -53,11 +52,8 @@ from stable_baselines3.common.type_aliases import MaybeCallback, RolloutReturn
 from sb3_td3x.common import denormals
 from sb3_td3x.common.buffers import TensorReplayBuffer
 from sb3_td3x.common.random_streams import RandomStreams, detached_streams
-from sb3_td3x.td3x.hooks import changed_hooks
 from sb3_td3x.td3x.td3x import TD3X
-from sb3_td3x.td3x.update_paths.compiled import decide_compile
 from sb3_td3x.td3x.update_paths.exploration import prefetch_actions
-from sb3_td3x.td3x.update_paths.mlp import MlpUpdate
 
 log = logging.getLogger(__name__)
 
@@ -76,8 +72,6 @@ def acting_as(index: int) -> Iterator[None]:
         current_seed.reset(token)
 
 
-SEED_STACKED = "seed_stacked_mlp"
-PER_SEED = "per_seed"
 # Packages whose code draws only from the model's streams (or from generators of its own, as gymnasium's envs).
 _OWN_STREAMS_CODE = ("stable_baselines3", "gymnasium", "sb3_td3x")
 
@@ -195,9 +189,6 @@ class SeedBatch:
         self.seeds = seeds
         #: Each seed's random streams (its model's own for a TD3X).
         self.streams = streams
-        #: How the last ``learn()`` ran the gradient steps ("seed_stacked_mlp" or "per_seed") and why.
-        self.update_path: str | None = None
-        self.update_reason: str | None = None
         #: Seed index -> the exception that stopped it (``learn(keep_going=True)``).
         self.errors: dict[int, BaseException] = {}
         self.collect_threads = int(collect_threads)
@@ -205,9 +196,7 @@ class SeedBatch:
         self._batched_actions = False  # this learn() call's: decided with its collection threads
         #: How the last ``learn()`` collected: threads used and seeds in them, whether pi(s) was batched, and why.
         self.collection: str | None = None
-        self._update: MlpUpdate | None = None
         self._globals = [True] * len(models)  # whose rounds run with their streams installed (set by learn)
-        self._announced: set[int] = set()
         self._on_error: Callable[[int, BaseException], None] | None = None
 
     # ------------------------------------------------------------------------------------------------------------
@@ -222,7 +211,7 @@ class SeedBatch:
         return iter(self.models)
 
     def __repr__(self) -> str:
-        return f"SeedBatch({type(self.models[0]).__name__}, seeds={self.seeds}, update_path={self.update_path!r})"
+        return f"SeedBatch({type(self.models[0]).__name__}, seeds={self.seeds})"
 
     @contextlib.contextmanager
     def seed_context(self, index: int, install: bool = True) -> Iterator[OffPolicyAlgorithm]:
@@ -230,10 +219,6 @@ class SeedBatch:
         (``install``); the caller's global state is put back at the end."""
         with acting_as(index), (self.streams[index].installed() if install else contextlib.nullcontext()):
             yield self.models[index]
-
-    def _globals_for(self, index: int) -> contextlib.AbstractContextManager:
-        """Seed ``index``'s streams installed when its code may draw from the global generators, else nothing."""
-        return self.streams[index].installed() if self._globals[index] else contextlib.nullcontext()
 
     def save(self, directory: str | Path) -> list[Path]:
         """Save each seed's model as ``<directory>/seed<seed>.zip`` (each loads with ``TD3X.load``)."""
@@ -247,22 +232,6 @@ class SeedBatch:
         return paths
 
     # ------------------------------------------------------------------------------------------------------------
-    def why_not_stacked(self) -> str | None:
-        """Why the gradient steps cannot run through one shared update (then each seed trains alone), or None."""
-        if len(self.models) == 1:
-            return "one seed: its own learn()"
-        not_td3x = [f"model {i} is a {type(m).__name__}" for i, m in enumerate(self.models) if not isinstance(m, TD3X)]
-        if not_td3x:
-            return "the shared update is TD3X's: " + "; ".join(not_td3x)
-        batch_sizes = {m.batch_size for m in self.models}
-        if len(batch_sizes) > 1:
-            return f"the seeds' batch sizes differ ({sorted(batch_sizes)})"
-        # The shared update stands in for train(): an override of it must run.
-        own_train = [f"model {i}: {r}" for i, m in enumerate(self.models) for r in changed_hooks(m, ("train", "_train"))]
-        if own_train:
-            return "; ".join(own_train)
-        return MlpUpdate.why_not_together(self.models)  # type: ignore[arg-type]
-
     def _per_seed_callbacks(self, callback: Sequence[MaybeCallback] | None) -> list[MaybeCallback]:
         if callback is None:
             return [None] * len(self.models)
@@ -311,7 +280,6 @@ class SeedBatch:
         resets = self._per_seed_values("reset_num_timesteps", reset_num_timesteps)
         self.errors, self._on_error = {}, on_error
         if len(self.models) == 1:  # one seed: its own learn()
-            self._choose_update()
             self.collection = "one seed: its own learn()"
             try:
                 with self.seed_context(0) as model:
@@ -325,7 +293,6 @@ class SeedBatch:
             self._start(i, totals[i], callbacks[i], resets[i], tb_log_name, progress_bar, log_interval)
             for i in range(len(self.models))
         ]
-        self._choose_update()  # after _setup_learn: auto compilation depends on the run's length
         active = [run for run in runs if not run.finished]
         with self._collection() as pool:
             while active:
@@ -452,80 +419,15 @@ class SeedBatch:
             self._on_error(index, error)
         log.warning("SeedBatch: seed %d stopped: %s: %s", self.seeds[index], type(error).__name__, error)
 
-    def _choose_update(self) -> None:
-        """The update of this ``learn()`` call: shared where :meth:`why_not_stacked` allows it."""
-        for model in self.models:
-            if isinstance(model, TD3X):
-                decide_compile(model)  # each seed decides as its lone run would; why_not_stacked needs them equal
-        reason = self.why_not_stacked()
-        self._update = None
-        if reason is None:
-            first = self.models[0]
-            self._update = MlpUpdate(self.models, compile=first.update_compiled, around=self._globals_for)  # type: ignore[arg-type]
-            self.update_path = SEED_STACKED
-            compiled = f"; {first.compile_reason}" if first.update_compiled else ""  # type: ignore[attr-defined]
-            self.update_reason = (
-                f"MlpUpdate of the {len(self.models)} seeds' models (each seed's lone update is MlpUpdate){compiled}"
-            )
-        else:
-            self.update_path, self.update_reason = PER_SEED, f"each seed trains alone: {reason}"
-        self._announced = set()
-
-    def _announce(self, index: int, path: str) -> None:
-        """The update line in seed ``index``'s log, once per ``learn()`` call."""
-        if index in self._announced:
-            return
-        self._announced.add(index)
-        model = self.models[index]
-        if path == SEED_STACKED and isinstance(model, TD3X):
-            model.update_path, model.update_reason = path, self.update_reason
-        model.logger.info(f"seed batch: {path} ({self.update_reason})")
-
     def _train(self, wants: list[tuple[_SeedRun, int]], keep_going: bool) -> None:
-        """The gradient steps of the seeds that want them: together when all want the same number, else each alone."""
-        if not wants:
-            return
-        steps = {n for _, n in wants}
-        if self._update is not None and len(wants) == len(self.models) and len(steps) == 1:
-            for run, _ in wants:
-                self._announce(run.index, SEED_STACKED)
-            self._train_together(steps.pop())
-            return
+        """The gradient steps of the seeds that want them, each with its model's own ``train()``."""
         for run, n in wants:
-            self._announce(run.index, PER_SEED)
             try:
                 with self.seed_context(run.index):
                     run.model.train(batch_size=run.model.batch_size, gradient_steps=n)
             except Exception as error:
                 self._fail(run.index, error, keep_going)
                 run.failed = True
-
-    def _train_together(self, gradient_steps: int) -> None:
-        """Every model's ``train(gradient_steps)`` (TD3X's steps and bookkeeping, each model's own), the updates
-        through the shared ``MlpUpdate``."""
-        assert self._update is not None
-        models = self.models
-        infos: list[tuple[list[Any], list[Any]]] = [([], []) for _ in models]
-        for i, m in enumerate(models):
-            with acting_as(i), self._globals_for(i):
-                m.policy.set_training_mode(True)
-                m._update_learning_rate([m.actor.optimizer, m.critic.optimizer])  # type: ignore[attr-defined]
-        with denormals.flush_denormals(models[0].device.type == "cpu" and models[0].flush_denormals):  # type: ignore[attr-defined]
-            for _ in range(gradient_steps):
-                batches, update_actor = [], []
-                for i, m in enumerate(models):
-                    with self._globals_for(i):
-                        m._n_updates += 1
-                        update_actor.append(m.should_update_actor(m._n_updates))  # type: ignore[attr-defined]
-                        batches.append(m.sample_batch(m.batch_size))  # type: ignore[attr-defined]
-                for i, (critic_info, actor_info) in enumerate(self._update.step(batches, update_actor)):
-                    infos[i][0].append(critic_info)
-                    if update_actor[i]:
-                        models[i]._n_actor_updates += 1  # type: ignore[attr-defined]
-                        infos[i][1].append(actor_info)
-        for i, m in enumerate(models):
-            with acting_as(i), self._globals_for(i):
-                m._log_train_infos(*infos[i])  # type: ignore[attr-defined]
 
 
 def _all_done(futures: dict[int, Future]) -> dict[int, Any]:
@@ -591,4 +493,4 @@ def _flat_callbacks(callbacks: Sequence[MaybeCallback]) -> list[Any]:
     return flat
 
 
-__all__ = ["PER_SEED", "SEED_STACKED", "SeedBatch", "acting_as", "current_seed"]
+__all__ = ["SeedBatch", "acting_as", "current_seed"]

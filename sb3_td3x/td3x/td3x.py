@@ -5,8 +5,7 @@ from __future__ import annotations
 import contextlib
 import math
 import warnings
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from typing import Any, ClassVar, TypeVar
 
 import numpy as np
@@ -24,30 +23,16 @@ from sb3_td3x.common import denormals
 from sb3_td3x.common.buffers import TensorReplayBuffer
 from sb3_td3x.common.random_streams import RandomStreams
 from sb3_td3x.td3x.hooks import HOOK_NAMES
+from sb3_td3x.td3x.optim import minimize
 from sb3_td3x.td3x.policies import CnnPolicy, MlpPolicy, MultiInputPolicy, TD3XPolicy
-from sb3_td3x.td3x.update_paths.choose import AUTO_GRAPHS, choose_update, why_not_cuda_graph
+from sb3_td3x.td3x.update_paths.choose import choose_update
 from sb3_td3x.td3x.update_paths.compiled import compile_watch
-from sb3_td3x.td3x.update_paths.exploration import choose_exploration_actor
+from sb3_td3x.td3x.update_paths.cuda_graph import why_not_capture
+from sb3_td3x.td3x.update_paths.exploration import why_not_direct
 from sb3_td3x.td3x.update_paths.precision import autocast_context, bf16_on_cpu_warning
 
 SelfTD3X = TypeVar("SelfTD3X", bound="TD3X")
 Obs = th.Tensor | TensorDict
-
-
-@contextmanager
-def frozen(parameters: list[th.nn.Parameter]) -> Iterator[None]:
-    """Temporarily switch off ``requires_grad`` on ``parameters``.
-
-    Used by the actor loss so that back-propagating ``-Q_1(s, pi(s))`` leaves the critic without gradient.
-    """
-    params = [p for p in parameters if p.requires_grad]
-    for p in params:
-        p.requires_grad_(False)
-    try:
-        yield
-    finally:
-        for p in params:
-            p.requires_grad_(True)
 
 
 class UnsupportedActionSpace(ValueError, AssertionError):
@@ -129,37 +114,27 @@ class TD3X(OffPolicyAlgorithm):
         DDPG's target action a' = pi_phi'(s')
     :param clipped_double_q: use the minimum over the critic targets in the TD target (step 8). ``False`` uses the
         first critic target only, as DDPG does
-    :param bf16: opt-in: the matrix products of the update in bf16 (AMX on recent x86 CPUs, tensor cores on GPUs),
-        with fp32 weights, gradients, optimizer states and losses: ``MlpUpdate``'s products where it applies, the
-        forward passes under bf16 autocast otherwise. A CPU without AVX512-BF16 or AMX (an AVX2 one) runs bf16 products
-        in software, tens of times slower than fp32: TD3X warns there
-    :param compile_update: ``torch.compile`` the update. ``None`` (auto, the default) compiles where it wins and
-        computes what the code says (:func:`~sb3_td3x.td3x.update_paths.compiled.why_not_compile`): on a CPU, in
-        fp32, :class:`~sb3_td3x.td3x.update_paths.mlp.MlpUpdate`'s two gradient functions (so only SB3's ReLU MLP
-        actor and critics with every hook as written: a user's change always runs uncompiled, as written), for a run
-        of at least :attr:`compile_auto_min_steps` training steps (its target less ``learning_starts``), which pays
-        back the first steps' compilation; otherwise the update is what ``False`` gives. ``True`` compiles any update:
-        ``MlpUpdate`` where it applies, otherwise steps 5 to 15 with the gradients from ``torch.func`` and Adam's
-        update rule on the optimizers' own states
-        (:class:`~sb3_td3x.td3x.update_paths.compiled.FunctionalCompiledUpdate`), or ``update_from_batch`` as it is.
+    :param bf16: opt-in: the forward passes of the update under bf16 autocast (AMX on recent x86 CPUs, tensor cores on
+        GPUs), with fp32 weights, gradients, optimizer states and losses. A CPU without AVX512-BF16 or AMX (an AVX2
+        one) runs bf16 products in software, tens of times slower than fp32: TD3X warns there
+    :param compile_update: run the update (steps 5 to 15: the hooks as written, both optimizer steps included) as one
+        ``torch.compile`` graph (:class:`~sb3_td3x.td3x.update_paths.compiled.CompiledUpdate`): whatever the hooks,
+        the networks and the losses are, they are compiled as written. Code Dynamo cannot put in one graph (a print,
+        ``.item()``, ``optimizer.zero_grad()``, an optimizer other than Adam or AdamW...) makes the update run eagerly,
+        with the reason in ``update_reason``. ``None`` (auto, the default) compiles on a CPU (on a GPU inside CUDA
+        graphs, see ``cuda_graph``), in fp32, with a C++ compiler, for a run of at least
+        :attr:`compile_auto_min_steps` training steps (its target less ``learning_starts``), which pays back the
+        first steps' compilation (:func:`~sb3_td3x.td3x.update_paths.compiled.why_not_compile`: it asks about the
+        machine and the run, never about the code); ``True`` compiles any run; ``False`` never compiles.
         ``update_compiled`` says whether the update is compiled and ``compile_reason`` why, decided at the first
-        ``train()`` of each ``learn()``
-    :param cuda_graph: capture the whole gradient step, sampling included, in CUDA graphs and replay them (no
-        kernel-launch or Python overhead per step). ``None`` (auto, the default) does where the update is provably
-        stock and capturable (:func:`~sb3_td3x.td3x.update_paths.cuda_graph.why_not_cuda_graph`: a CUDA device, the
-        tensor replay buffer, no ``VecNormalize``, Adam, SB3's ReLU MLP actor and critics with the hooks as written,
-        no ``compile_update`` or ``bf16``...), decided when the model is built and checked again at the first
-        ``train()``, which steps aside to the eager update if a hook or network was changed since: a user's change
-        is never frozen into a graph. So on a CPU, or with any change, the update is what it is with ``False``.
-        ``True`` captures the hooks as they are, changed or not (CUDA only: an error on a CPU); ``False`` never
-        captures. ``cuda_graph`` then says whether graphs are used, ``cuda_graph_request`` what was asked and
-        ``cuda_graph_reason`` why
-    :param mlp_update: for SB3's ReLU MLP actor and critics with the hooks of steps 5 to 13 as written, compute the
-        gradients by hand instead of with autograd (:class:`~sb3_td3x.td3x.update_paths.mlp.MlpUpdate`: the same
-        update, faster). Anything it cannot prove unchanged (an overridden hook, a network's ``forward``, an
-        activation, a module or gradient hook...) makes the hooks run as written; ``update_path`` and
-        ``update_reason`` say which update runs and why, and the first ``train()`` logs them
-        (:func:`~sb3_td3x.td3x.update_paths.choose.choose_update`). ``False`` always runs the hooks with autograd
+        ``train()`` of each ``learn()``; ``update_path`` and ``update_reason`` say what ran (logged once)
+    :param cuda_graph: on a GPU, CUDA graphs for the update (no kernel-launch or Python overhead per step). ``None``
+        (auto, the default): the compiled update of ``compile_update`` runs inside CUDA graphs (``torch.compile``'s
+        ``reduce-overhead`` mode; Dynamo's guards see every Python value the hooks read). ``True`` captures
+        ``gradient_step`` as it is, sampling included, in CUDA graphs of its own and replays them
+        (:class:`~sb3_td3x.td3x.update_paths.cuda_graph.GraphedGradientStep`): what the hooks decide in Python is
+        decided once, at the capture (CUDA only: an error on a CPU). ``False`` never uses graphs. ``cuda_graph``
+        says whether ``True``'s graphs are set up, ``cuda_graph_request`` what was asked and ``cuda_graph_reason`` why
     :param flush_denormals: on a CPU, flush denormal floats to zero during ``train()`` on every torch thread
         (:func:`~sb3_td3x.common.denormals.flush_denormals`): Adam's second moment makes them from tiny gradients, and
         each costs a hundred cycles; the process's setting is restored after each call
@@ -211,7 +186,6 @@ class TD3X(OffPolicyAlgorithm):
         bf16: bool = False,
         compile_update: bool | None = None,
         cuda_graph: bool | None = None,
-        mlp_update: bool = True,
         flush_denormals: bool = True,
         _init_setup_model: bool = True,
     ):
@@ -235,7 +209,6 @@ class TD3X(OffPolicyAlgorithm):
         self.compile_reason: str | None = None
         self.cuda_graph_request = cuda_graph  # what was asked: None (auto), True or False; saved with the model
         self.cuda_graph = False  # whether the update runs in CUDA graphs: decided by _setup_model
-        self.mlp_update = mlp_update
         self.flush_denormals = flush_denormals
         self._n_actor_updates = 0  # actor (delayed) updates done so far; saved with the model
         self._check_cuda_graph_setup()
@@ -345,7 +318,7 @@ class TD3X(OffPolicyAlgorithm):
             # Step 1: the replay buffer, kept as tensors on the training device (SB3's other buffers otherwise).
             self.replay_buffer_class = TensorReplayBuffer
         request = self.cuda_graph_request
-        # cuda_graph=True as asked; auto (None) is decided below, once the networks, optimizers and buffer exist.
+        # cuda_graph=True's graphs of their own (auto's are torch.compile's, inside the compiled update).
         self.cuda_graph = request is True and self.device.type == "cuda"
         if request is True and not self.cuda_graph:
             # Construction on a CPU already failed (__init__); this is a GPU-trained model loaded without a GPU.
@@ -354,7 +327,7 @@ class TD3X(OffPolicyAlgorithm):
             warnings.warn(slow_bf16)
         optimizer_kwargs = dict(self.policy_kwargs.get("optimizer_kwargs") or {})
         if self.cuda_graph:
-            # CUDA graphs need the optimizer's step counter on the device (auto sets it in the built optimizers).
+            # CUDA graphs need the optimizer's step counter on the device.
             optimizer_kwargs["capturable"] = True
         else:
             optimizer_kwargs.pop("capturable", None)
@@ -364,27 +337,22 @@ class TD3X(OffPolicyAlgorithm):
         # The generators TD3X's own code draws from: the global ones, as SB3's, until a SeedBatch detaches them.
         self.random_streams = RandomStreams(self.device)
         self._link_replay_buffer_streams()
-        if self.cuda_graph and not isinstance(self.replay_buffer, TensorReplayBuffer):
-            raise ValueError(
-                "cuda_graph=True samples the replay buffer inside the graph: it needs TD3X's TensorReplayBuffer "
-                f"(Box observations, n_steps=1, replay_buffer_class=None), got {type(self.replay_buffer).__name__}."
-            )
         self._step_fn: Any = None
-        # Which update train() runs and why, set at its first call (update_paths.choose.choose_update): "mlp"
-        # (MlpUpdate), "autograd" (the hooks as written), "compiled_mlp", "compiled", "compiled_eager_backward" or
-        # "cuda_graph".
+        # Which update train() runs and why, set at its first call (update_paths.choose.choose_update): "eager" (the
+        # hooks as written), "compiled" (the same, one torch.compile graph) or "cuda_graph" (cuda_graph=True).
         self.update_path: str | None = None
         self.update_reason: str | None = None
         self._create_aliases()
         self._critic_lr_schedule = None if self.critic_learning_rate is None else FloatSchedule(self.critic_learning_rate)
         update_learning_rate(self.critic.optimizer, self.critic_lr_schedule(1))
         if request is None:
-            why_not = why_not_cuda_graph(self)
-            self._use_cuda_graph(why_not is None, f"cuda_graph=None (auto): {why_not}" if why_not else AUTO_GRAPHS)
+            self._use_cuda_graph(False, "cuda_graph=None (auto): on a GPU, the compiled update runs in CUDA graphs")
         elif request and not self.cuda_graph:
             self._use_cuda_graph(False, f"cuda_graph=True, but no CUDA device ({self.device})")
+        elif request and (why := why_not_capture(self)) is not None:
+            raise ValueError(f"cuda_graph=True cannot capture this model's gradient step: {why}.")
         else:
-            self._use_cuda_graph(request, f"cuda_graph={request}")
+            self._use_cuda_graph(request, f"cuda_graph={request}: gradient_step as it is, captured in CUDA graphs")
 
     def _use_cuda_graph(self, on: bool, reason: str) -> None:
         """Set the model up for gradient steps in CUDA graphs (``on``) or eager ones, and record it with ``reason``.
@@ -393,7 +361,7 @@ class TD3X(OffPolicyAlgorithm):
         step, or after a state is loaded), the learning rates in device tensors (a float would be baked into the
         graphs; :meth:`_update_learning_rate` fills them in place) and the replay buffer sampled from bounds kept in
         device tensors. Eager steps take floats, ``capturable=False`` and SB3's sampling: what ``cuda_graph=False``
-        builds. Called by ``_setup_model``, after loading parameters, and by ``choose_update`` (auto stepping aside).
+        builds. Called by ``_setup_model`` and after loading parameters.
         """
         self.cuda_graph, self.cuda_graph_reason = on, reason
         schedules = {self.actor.optimizer: self.lr_schedule, self.critic.optimizer: self.critic_lr_schedule}
@@ -434,8 +402,6 @@ class TD3X(OffPolicyAlgorithm):
         self._actor_params = list(self.actor.parameters())
         self._actor_target_params = list(self.actor_target.parameters())
         self._critic_params = list(self.critic.parameters())
-        actor_param_ids = {id(p) for p in self._actor_params}
-        self._critic_only_params = [p for p in self._critic_params if id(p) not in actor_param_ids]
         self._critic_target_params = list(self.critic_target.parameters())
         self._actor_batch_norm_stats = get_parameters_by_name(self.actor, ["running_"])
         self._actor_batch_norm_stats_target = get_parameters_by_name(self.actor_target, ["running_"])
@@ -502,8 +468,7 @@ class TD3X(OffPolicyAlgorithm):
 
     def _gradient_step_fn(self) -> Callable[[int, bool], tuple[dict[str, th.Tensor], dict[str, th.Tensor]]]:
         """The gradient step ``train()`` runs, chosen once (:func:`~sb3_td3x.td3x.update_paths.choose.choose_update`)
-        and logged: the hooks with autograd, or a faster way that computes the same (``update_path``,
-        ``update_reason``)."""
+        and logged: the hooks eagerly, compiled or in CUDA graphs (``update_path``, ``update_reason``)."""
         # Chosen again when a hook is set on the instance, or a network, an optimizer, the replay buffer or the
         # VecNormalize wrapper is replaced after the choice (a cheap check per train() call; changes inside a module
         # after the first train() are not seen: set them before it).
@@ -516,11 +481,7 @@ class TD3X(OffPolicyAlgorithm):
             self.update_path, self.update_reason, self._step_fn = choice.path, choice.reason, choice.step
             self._step_fn_for = watched
             _, exploration, exploration_reason = self._exploration()
-            self.logger.info(
-                f"update: {self.update_path} ({self.update_reason}); "
-                f"exploration: {exploration} ({exploration_reason})"
-                + ("" if self.update_compiled or self.compile_update is not None else f"; {self.compile_reason}")
-            )
+            self.logger.info(f"update: {self.update_path} ({self.update_reason}); exploration: {exploration} ({exploration_reason})")
         return self._step_fn
 
     def _instance_hooks(self) -> tuple[tuple[str, Any], ...]:
@@ -601,10 +562,9 @@ class TD3X(OffPolicyAlgorithm):
         return loss, info
 
     def optimize_critic(self, loss: th.Tensor) -> None:
-        """Step 12: one gradient step of the critics' optimizer on the critic loss."""
-        self.critic.optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        self.critic.optimizer.step()
+        """Step 12: one gradient step of the critics' optimizer on the critic loss (:func:`~sb3_td3x.td3x.optim.minimize`:
+        ``zero_grad``, ``backward``, ``step``, and the same step when the update is compiled)."""
+        minimize(self.critic.optimizer, loss)
 
     # Step 13 -----------------------------------------------------------------------------------------------------
     def should_update_actor(self, n_updates: int) -> bool:
@@ -614,18 +574,16 @@ class TD3X(OffPolicyAlgorithm):
     def actor_loss(self, observations: Obs) -> tuple[th.Tensor, dict[str, th.Tensor]]:
         """Step 13: J(phi) = -mean Q_1(s, pi_phi(s)) (deterministic policy gradient, paper eq. 6).
 
-        The critic is frozen while the loss is built, so back-propagating it leaves the critic without gradient
+        The gradient reaches the actor's parameters only (:meth:`optimize_actor` asks for those): the critic gets none
         (a features extractor shared with the actor, ``share_features_extractor=True``, is the actor's and trains).
         """
-        with frozen(self._critic_only_params):
-            loss = -self.critic.q1_forward(observations, self.actor(observations)).float().mean()
+        loss = -self.critic.q1_forward(observations, self.actor(observations)).float().mean()
         return loss, {"actor_loss": loss.detach()}
 
     def optimize_actor(self, loss: th.Tensor) -> None:
-        """Step 13: one gradient step of the actor's optimizer on the actor loss."""
-        self.actor.optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        self.actor.optimizer.step()
+        """Step 13: one gradient step of the actor's optimizer on the actor loss (:func:`~sb3_td3x.td3x.optim.minimize`):
+        the gradient of the loss with respect to the actor's parameters only."""
+        minimize(self.actor.optimizer, loss)
 
     # Steps 14-15 -------------------------------------------------------------------------------------------------
     @th.no_grad()
@@ -656,18 +614,18 @@ class TD3X(OffPolicyAlgorithm):
     ) -> tuple[np.ndarray, np.ndarray]:
         """The exploration action a = clip(pi(s) + noise, -1, 1) in the normalised action space, and its env scaling.
 
-        The same actions as SB3's ``_sample_action`` (uniform random before ``learning_starts``), computed straight
-        from the actor's normalised output by ``DirectMlpActor`` instead of ``predict()`` followed by
-        ``scale_action()``, where that computes the same (:meth:`_exploration`); SB3's own method otherwise.
+        The same actions as SB3's ``_sample_action`` (uniform random before ``learning_starts``), pi(s) computed by
+        calling the actor module on the observation instead of ``predict()`` followed by ``scale_action()``, where
+        SB3's predict path is as written (:meth:`_exploration`); SB3's own method otherwise.
         """
         action_noise = self._own_stream_noise(action_noise)
         if self.num_timesteps < learning_starts or not isinstance(self._last_obs, np.ndarray):
             return super()._sample_action(learning_starts, action_noise, n_envs)  # type: ignore[arg-type]
         actor = self._exploration()[0]
-        if actor is None:  # the actor or the predict path is the user's: SB3's own
+        if actor is None:  # the predict path is the user's: SB3's own
             return super()._sample_action(learning_starts, action_noise, n_envs)  # type: ignore[arg-type]
         prefetched = self.__dict__.pop("_prefetched_action", None)  # pi(s) computed with other seeds' (SeedBatch)
-        if prefetched is not None and prefetched.valid_for(self, actor):
+        if prefetched is not None and prefetched.valid_for(self):
             scaled_action = prefetched.actions
         else:
             with th.no_grad():
@@ -686,12 +644,14 @@ class TD3X(OffPolicyAlgorithm):
         return lambda: self.random_streams.numpy.normal(noise._mu, noise._sigma).astype(noise._dtype)
 
     def _exploration(self) -> tuple[Callable[[th.Tensor], th.Tensor] | None, str, str]:
-        """The collection shortcut for pi(s), its name and why (chosen again when the actor is replaced): a
-        ``DirectMlpActor`` where it computes what ``actor.forward`` does, else ``None`` (SB3's ``_sample_action``)."""
+        """How collection computes pi(s), its name and why (chosen again when the actor is replaced): the actor module
+        itself (``"actor"``), or ``None`` (``"sb3_predict"``: SB3's ``_sample_action``) where SB3's predict path is
+        the user's (:func:`~sb3_td3x.td3x.update_paths.exploration.why_not_direct`)."""
         cached = self.__dict__.get("_exploration_choice")
         if cached is None or cached[0] is not self.actor:
-            cached = (self.actor, *choose_exploration_actor(self))
-            self._exploration_choice = cached
+            why = why_not_direct(self)
+            choice = (None, "sb3_predict", why) if why else (self.actor, "actor", "the actor module called directly")
+            cached = self._exploration_choice = (self.actor, *choice)
             self.exploration_path = cached[2]
         return cached[1], cached[2], cached[3]
 
@@ -837,7 +797,6 @@ class TD3X(OffPolicyAlgorithm):
             "_actor_params",
             "_actor_target_params",
             "_critic_params",
-            "_critic_only_params",
             "_critic_target_params",
             "_actor_batch_norm_stats",
             "_actor_batch_norm_stats_target",

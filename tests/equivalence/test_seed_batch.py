@@ -2,8 +2,8 @@
 
 Each test builds the same models twice from one factory: once alone, ``make(seed).learn(...)`` one after the other,
 and once as a batch. Collection (exploration noise, random actions before ``learning_starts``), sampling, the target
-smoothing noise and the weights must be equal seed by seed, through the shared update (``seed_stacked_mlp``), through
-the per-seed one (an overridden loss hook), and with an action noise of the user's that draws from numpy's global
+smoothing noise and the weights must be equal seed by seed, with the eager update and the compiled one (a long run's
+default), with an overridden loss hook, and with an action noise of the user's that draws from numpy's global
 generator; and they must differ when the seeds' random streams are shared or swapped. Collection in threads
 (``collect_threads``) is bit for bit too; pi(s) batched across seeds (``batched_actions``, a GPU's default) to float
 rounding, and the test sees a stale or misplaced batched row.
@@ -35,7 +35,7 @@ class HuberTD3X(TD3X):
 
 
 class LongRunTD3X(TD3X):
-    """Every run counts as long: compile_update=None (auto) compiles MlpUpdate, as on a long run on a CPU."""
+    """Every run counts as long: compile_update=None (auto) compiles the update, as on a long run on a CPU."""
 
     compile_auto_min_steps = 0
 
@@ -89,43 +89,30 @@ def assert_same_runs(batch, lone, exact=True):
 
 
 @pytest.mark.parametrize(
-    ("cls", "noise", "path", "swaps"),
+    ("cls", "noise", "swaps"),
     [
-        (TD3X, NormalActionNoise, "seed_stacked_mlp", False),
-        (HuberTD3X, NormalActionNoise, "per_seed", True),
-        (TD3X, GlobalNoise, "seed_stacked_mlp", True),
-        (LongRunTD3X, NormalActionNoise, "seed_stacked_mlp", True),
+        (TD3X, NormalActionNoise, False),
+        (HuberTD3X, NormalActionNoise, True),
+        (TD3X, GlobalNoise, True),
+        (LongRunTD3X, NormalActionNoise, True),
     ],
     ids=["default", "overridden-critic_loss", "noise-from-numpy-global", "compiled-long-run"],
 )
-def test_a_batch_computes_the_lone_runs_bit_for_bit(cls, noise, path, swaps):
+def test_a_batch_computes_the_lone_runs_bit_for_bit(cls, noise, swaps):
     make = factory(cls, noise)
     lone = lone_runs(make)
     caller = np.random.get_state()
     batch = SeedBatch(make, SEEDS).learn(STEPS)
-    assert batch.update_path == path
     assert batch.collection == "one seed after the other (collect_threads=1); pi(s) per seed"  # a CPU's default
-    compiled = cls is LongRunTD3X  # the long run's default: each lone run and the batch compile MlpUpdate
-    assert all(m.update_compiled == compiled for m in [*lone, *batch])
-    assert ("compile_update=None (auto): a run of 350 training steps" in batch.update_reason) == compiled
-    if cls is HuberTD3X:
-        assert "critic_loss overridden by HuberTD3X" in batch.update_reason
+    compiled = cls is LongRunTD3X  # the long run's default: each lone run and each seed of the batch compile the update
+    assert all(m.update_path == ("compiled" if compiled else "eager") for m in [*lone, *batch])
+    assert all(("compile_update=None (auto): a run of 350 training steps" in m.update_reason) == compiled for m in batch)
     # The default model's rounds swap no global state; a user's class or noise runs with the seed's streams installed.
     assert batch._globals == [swaps] * len(SEEDS)
     assert all(m._n_updates == STEPS - 100 for m in batch)
     assert_same_runs(batch, lone)
     # The caller's global random state is as it was.
     assert all(np.array_equal(a, b) for a, b in zip(np.random.get_state(), caller))
-
-
-def test_the_batched_update_computes_what_the_hooks_compute_with_autograd():
-    """The batch (seed_stacked_mlp) against lone runs of the plain hooks with autograd (mlp_update=False), from the
-    same seeds: the batched update stands in for the hooks themselves, not only for MlpUpdate."""
-    lone = lone_runs(factory(mlp_update=False))
-    assert all(m.update_path == "autograd" for m in lone)
-    batch = SeedBatch(factory(), SEEDS).learn(STEPS)
-    assert batch.update_path == "seed_stacked_mlp"
-    assert_same_runs(batch, lone, exact=False)
 
 
 def test_the_test_fails_when_the_math_differs():
@@ -230,7 +217,6 @@ def test_sb3_td3_runs_per_seed_and_matches():
 
     lone = [make(seed).learn(200) for seed in SEEDS[:2]]
     batch = SeedBatch(make, SEEDS[:2]).learn(200)
-    assert batch.update_path == "per_seed" and "model 0 is a TD3" in batch.update_reason
     assert_same_runs(batch, lone)
 
 
@@ -274,7 +260,7 @@ def test_bad_input_is_refused_with_a_clear_message():
 
 
 class CountingTrain(TD3X):
-    """train() overridden (it calls super): the batched update would bypass it, so each seed trains alone."""
+    """train() overridden (it calls super): the batch calls each seed's train()."""
 
     def train(self, gradient_steps, batch_size=100):
         self.train_calls = getattr(self, "train_calls", 0) + 1
@@ -291,7 +277,6 @@ def test_an_overridden_train_runs_and_an_overridden_learn_is_refused():
     make = factory(CountingTrain)
     lone = lone_runs(make, steps=200)
     batch = SeedBatch(make, SEEDS).learn(200)
-    assert batch.update_path == "per_seed" and "train overridden by CountingTrain" in batch.update_reason
     assert [m.train_calls for m in batch] == [m.train_calls for m in lone] == [100] * len(SEEDS)
     assert_same_runs(batch, lone)
     with pytest.raises(ValueError, match=r"would not run model 0's learn \(overridden by OwnLearn\).*callback"):
@@ -343,8 +328,8 @@ def _count_prefetched(monkeypatch):
     taken = {}
     valid = exploration.PrefetchedAction.valid_for
 
-    def counting(self, model, actor):
-        ok = valid(self, model, actor)
+    def counting(self, model):
+        ok = valid(self, model)
         taken[model.seed] = taken.get(model.seed, 0) + ok
         return ok
 
@@ -353,7 +338,7 @@ def _count_prefetched(monkeypatch):
 
 
 def test_batched_actions_compute_what_each_seed_computes(monkeypatch):
-    """batched_actions=True (the GPU's default) on a CPU: pi(s) of the three seeds in one batched product per layer,
+    """batched_actions=True (the GPU's default) on a CPU: pi(s) of the three seeds in one vmapped call of the actor,
     each seed's collection to float rounding its lone run's. A seed whose actor changed in place after the batched
     pi(s) (a callback at a rollout's start) computes its own: else it would act with the old weights."""
     lone = []
@@ -375,22 +360,29 @@ def _halved_actor(model):
     return model
 
 
-@pytest.mark.parametrize("change", ["activation", "actor_forward"])
-def test_batched_actions_step_aside_for_a_users_actor(change, monkeypatch):
-    """A Tanh MLP actor, or an actor forward set on the instance: batched pi(s) (which computes a ReLU MLP from the
-    Linear layers) must not stand in for it. Each seed then runs SB3's predict, as written, and equals its lone run
-    bit for bit; a batched row taken anyway would act without the change, and the comparison would fail."""
+def test_batched_actions_run_the_users_actor(monkeypatch):
+    """A Tanh MLP actor: the batched pi(s) is the actor module's own forward, vmapped over the seeds' parameters, so
+    it computes the user's network (to float rounding) and is taken."""
 
     def make(seed):
-        if change == "activation":
-            return factory(policy_kwargs={"net_arch": [32, 32], "activation_fn": th.nn.Tanh})(seed)
-        return _halved_actor(factory()(seed))
+        return factory(policy_kwargs={"net_arch": [32, 32], "activation_fn": th.nn.Tanh})(seed)
 
     lone = lone_runs(make, steps=250)
     taken = _count_prefetched(monkeypatch)
     batch = SeedBatch(make, SEEDS, batched_actions=True).learn(250)
     assert batch.collection.endswith("pi(s) batched across seeds")
-    assert all(m.exploration_path == "sb3_predict" for m in batch)
+    assert taken == {seed: 150 for seed in SEEDS}
+    assert_same_runs(batch, lone, exact=False)
+
+
+def test_batched_actions_step_aside_for_an_actor_forward_set_on_the_instance(monkeypatch):
+    """A forward set on each seed's actor instance may differ from seed to seed: one call cannot stand for all of
+    them, so each seed computes its own pi(s), as written, bit for bit its lone run's."""
+    make = lambda seed: _halved_actor(factory()(seed))  # noqa: E731
+    lone = lone_runs(make, steps=250)
+    taken = _count_prefetched(monkeypatch)
+    batch = SeedBatch(make, SEEDS, batched_actions=True).learn(250)
+    assert all(m.exploration_path == "actor" for m in batch)
     assert taken == {}  # no row was computed, so none was offered
     assert_same_runs(batch, lone)
 

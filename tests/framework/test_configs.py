@@ -71,13 +71,13 @@ def test_sb3_td3_config_runs_the_td3_settings_and_refuses_td3x_only_switches():
     td3 = algorithm_kwargs(compose_config(["algo=td3"]).algo, n_actions=1)
     sb3 = algorithm_kwargs(compose_config(["algo=sb3_td3"]).algo, n_actions=1)
     td3_only = {"critic_learning_rate", "target_policy_smoothing", "clipped_double_q", "bf16", "compile_update",
-                "cuda_graph", "mlp_update", "flush_denormals"}
+                "cuda_graph", "flush_denormals"}
     assert set(td3) - set(sb3) == td3_only
     for key in sb3:
         if key != "action_noise":
             assert sb3[key] == td3[key], key
     for override in ("algo.target_policy_smoothing=false", "algo.clipped_double_q=false", "algo.critic_learning_rate=3e-4",
-                     "algo.compile_update=true", "algo.mlp_update=false", "algo.cuda_graph=false", "algo.cuda_graph=true"):
+                     "algo.compile_update=true", "algo.cuda_graph=false", "algo.cuda_graph=true"):
         with pytest.raises(ConfigError, match="SB3's TD3 .* has no such option"):
             algorithm_kwargs(compose_config(["algo=sb3_td3", override]).algo, n_actions=1)
 
@@ -127,11 +127,11 @@ def test_no_algo_config_restates_a_value_it_inherits(name, tmp_path):
 
 
 def test_the_schema_has_td3x_defaults_and_the_preset_configs_are_the_presets():
-    """The algo schema is read from TD3X's signature (every argument with a plain type, mlp_update and
+    """The algo schema is read from TD3X's signature (every argument with a plain type, compile_update and
     flush_denormals included), and each preset's config is td3.yaml with exactly sb3_td3x.PRESETS's switches."""
     schema = OmegaConf.structured(AlgoConfig)
     parameters = inspect.signature(TD3X.__init__).parameters
-    assert constructor_fields().keys() >= {"mlp_update", "flush_denormals", "critic_learning_rate", "n_steps", "bf16"}
+    assert constructor_fields().keys() >= {"compile_update", "flush_denormals", "critic_learning_rate", "n_steps", "bf16"}
     for name in constructor_fields():
         assert schema[name] == parameters[name].default, name
     td3 = OmegaConf.to_container(compose_config(["algo=td3"]).algo, resolve=False)

@@ -186,7 +186,7 @@ def test_a_compiled_run_stopped_and_resumed_is_the_run_never_stopped(tmp_path):
     assert json.loads((stopped / "checkpoints" / "last" / META_FILE).read_text())["num_timesteps"] == 1000
     run_experiment(compose_config([*overrides, f"resume={stopped}"]))
     summary = json.loads((stopped / "summary.json").read_text())
-    assert summary["update_path"] == "compiled_mlp"
+    assert summary["update_path"] == "compiled"
     assert curve(stopped) == curve(tmp_path / "reference")
     for name, tensor in policy_weights(tmp_path / "reference").items():
         torch.testing.assert_close(policy_weights(stopped)[name], tensor, rtol=0, atol=0, msg=name)

@@ -12,11 +12,11 @@ def test_summary_and_log_name_the_update_path_and_its_reason(tmp_path, caplog):
     caplog.set_level("INFO", logger="sb3_td3x")
     run_experiment(compose_config(SMOKE + [f"run_dir={tmp_path}"]))
     summary = json.loads((tmp_path / "summary.json").read_text())
-    assert summary["update_path"] == "mlp" and "MlpUpdate" in summary["update_reason"]
-    assert summary["exploration_path"] == "direct_mlp"
+    assert summary["update_path"] == "eager" and "not compiled: a run of" in summary["update_reason"]
+    assert summary["exploration_path"] == "actor"
     lines = [r.getMessage() for r in caplog.records if r.getMessage().startswith("update: ")]
     assert len(lines) == 1, lines  # once, at the first train()
-    assert lines[0].startswith(f"update: mlp ({summary['update_reason']}); exploration: direct_mlp (")
+    assert lines[0].startswith(f"update: eager ({summary['update_reason']}); exploration: actor (")
 
 
 def test_sb3s_td3_records_no_update_path(tmp_path):

@@ -6,12 +6,13 @@ fail when the maths differs:
 
 - ``cuda_graph=True``: the graph replays compute the eager gradient steps (same weights, same random draws), with
   SB3's MLP and with an overridden hook;
-- the default (``cuda_graph=None``, auto): CUDA graphs for a stock model; a hook set after construction makes it
-  step aside to the eager update, which then trains as ``cuda_graph=False`` does;
-- the eager update (``MlpUpdate``, ``cuda_graph=False``) on the GPU: a seeded ``learn()`` ends where SB3's ``TD3`` on
-  the GPU ends;
-- ``SeedBatch`` on the GPU (all seeds in one product, pi(s) of all seeds batched, per-seed CUDA generators), its
-  seeds collecting in turn and in threads: each seed ends where its lone run ends.
+- the default of a long run (``cuda_graph=None``, auto): the update compiled as written inside CUDA graphs
+  (``torch.compile``'s ``reduce-overhead``), for a stock model and for a hook set on the instance, against the eager
+  hooks from the same state;
+- the eager update (``compile_update=False``) on the GPU: a seeded ``learn()`` ends where SB3's ``TD3`` on the GPU
+  ends;
+- ``SeedBatch`` on the GPU (pi(s) of all seeds in one vmapped call, per-seed CUDA generators, each seed's own
+  update), its seeds collecting in turn and in threads: each seed ends where its lone run ends.
 """
 
 import numpy as np
@@ -119,27 +120,31 @@ def test_cuda_graph_learn_save_load_and_go_on(tmp_path):
     assert all(th.isfinite(p).all() for p in loaded.policy.parameters())
 
 
-def test_the_default_takes_cuda_graphs_for_a_stock_model_and_steps_aside_for_a_change():
+@pytest.mark.parametrize("change", ["stock", "instance_hook"])
+def test_the_default_of_a_long_run_compiles_the_hooks_inside_cuda_graphs(change, monkeypatch):
+    monkeypatch.setattr(TD3X, "compile_auto_min_steps", 0)  # every run counts as long
+
     def make(**kwargs) -> TD3X:
-        return TD3X("MlpPolicy", "Pendulum-v1", learning_starts=100, batch_size=64, seed=2, device="cuda",
-                    policy_kwargs={"net_arch": [32, 32]}, **kwargs)
+        model = TD3X("MlpPolicy", "Pendulum-v1", learning_starts=COLLECT, batch_size=64, seed=2, device="cuda",
+                     policy_kwargs={"net_arch": [32, 32]}, **kwargs)
+        model.learn(COLLECT)  # collection only
+        if change == "instance_hook":
+            model.td_target = lambda rewards, dones, discounts, next_q, model=model: TD3X.td_target(
+                model, rewards, 0.5 * dones, discounts, next_q)
+        model.set_logger(configure(None, []))
+        return model
 
-    stock = make()
-    assert stock.cuda_graph_request is None and stock.cuda_graph and stock.replay_buffer.static_sampling
-    stock.learn(300)
-    assert stock.update_path == "cuda_graph" and stock.update_reason.startswith("cuda_graph=None (auto)")
-    assert all(th.isfinite(p).all() for p in stock.policy.parameters())
-
-    changed, eager = make(), make(cuda_graph=False)
-    for model in (changed, eager):  # a hook set after construction: auto was set up for graphs, and steps aside
-        model.td_target = lambda rewards, dones, discounts, next_q, model=model: TD3X.td_target(
-            model, rewards, dones, discounts, next_q)
-        model.set_random_seed(5)
-        model.learn(300)
-    assert changed.update_path == "autograd" and "stepped aside" in changed.update_reason
-    assert not changed.cuda_graph and not changed.replay_buffer.static_sampling
-    for (name, a), b in zip(eager.policy.state_dict().items(), changed.policy.state_dict().values()):
-        th.testing.assert_close(b, a, rtol=1e-5, atol=1e-6, msg=name)
+    compiled, eager = make(), make(compile_update=False)
+    assert not compiled.cuda_graph  # cuda_graph=True's own graphs are not set up: auto's are torch.compile's
+    for model in (compiled, eager):
+        np.random.seed(7)
+        th.cuda.manual_seed(7)
+        model.train(gradient_steps=20, batch_size=64)
+    assert compiled.update_path == "compiled", compiled.update_reason
+    assert compiled.update_reason.endswith("one graph in CUDA graphs (torch.compile's reduce-overhead)")
+    assert eager.update_path == "eager"
+    for (name, a), b in zip(eager.policy.state_dict().items(), compiled.policy.state_dict().values()):
+        th.testing.assert_close(b, a, rtol=1e-4, atol=1e-5, msg=name)
 
 
 def sb3_kwargs(**kwargs) -> dict:
@@ -158,7 +163,7 @@ def test_seeded_learn_on_the_gpu_matches_sb3_td3_on_the_gpu():
     for model in (sb3, td3x, broken):
         model.set_random_seed(11)
         model.learn(400)
-    assert td3x.update_path == "mlp" and sb3._n_updates == td3x._n_updates == 300
+    assert td3x.update_path == "eager" and sb3._n_updates == td3x._n_updates == 300
     for (name, expected), got in zip(sb3.policy.state_dict().items(), td3x.policy.state_dict().values()):
         th.testing.assert_close(got, expected, rtol=1e-4, atol=1e-5, msg=name)
     assert max_difference(sb3, broken) > 1e-3
@@ -167,15 +172,13 @@ def test_seeded_learn_on_the_gpu_matches_sb3_td3_on_the_gpu():
 @pytest.mark.parametrize("collect_threads", [1, 3])
 def test_seed_batch_on_the_gpu_computes_the_lone_runs(collect_threads):
     def make(seed, cls=TD3X):
-        # cuda_graph=False: the shared update (a model in CUDA graphs, the default on a GPU, trains alone).
         return cls("MlpPolicy", "Pendulum-v1", seed=seed, learning_starts=100, batch_size=64, device="cuda",
-                   cuda_graph=False, policy_kwargs={"net_arch": [32, 32]},
+                   policy_kwargs={"net_arch": [32, 32]},
                    action_noise=NormalActionNoise(np.zeros(1), 0.1 * np.ones(1)))
 
     seeds = (0, 1, 2)
     lone = [make(seed).learn(400) for seed in seeds]
     batch = SeedBatch(make, seeds, collect_threads=collect_threads).learn(400)
-    assert batch.update_path == "seed_stacked_mlp"
     assert batch.collection.endswith("pi(s) batched across seeds")  # the GPU's default
     assert batch.collection.startswith("3 seeds in 3 threads" if collect_threads == 3 else "one seed after the other")
     for i, (model, alone) in enumerate(zip(batch, lone)):
@@ -213,5 +216,5 @@ def test_seeds_on_a_gpu_run_in_processes_each_its_lone_run(tmp_path):
             return [float(row["mean_return"]) for row in csv.DictReader(file)]
 
     summary = json.loads((tmp_path / "batch" / "seed1" / "summary.json").read_text())
-    assert summary["trained_together"] == [1] and summary["update_path"] == "cuda_graph"
+    assert summary["trained_together"] == [1] and summary["update_path"] == "eager"  # a short run
     np.testing.assert_allclose(returns(tmp_path / "batch" / "seed1"), returns(tmp_path / "lone1"), rtol=1e-3, atol=1e-2)

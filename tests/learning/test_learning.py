@@ -15,13 +15,15 @@ THRESHOLD = -250.0
 
 @pytest.mark.slow
 @pytest.mark.timeout(900)
-@pytest.mark.parametrize("seed, mlp_update", [(0, True)], ids=["mlp-0"])
-def test_td3x_learns_pendulum(seed, mlp_update):
-    """The default update (MlpUpdate, gradients by hand) on one seed. The hooks with autograd compute the same
-    weights from one seed (tests/equivalence: test_user_changes.py's stock cases, test_equivalence.py against SB3's
-    TD3), and a batched seed is its lone run to the bit (tests/framework/test_seed_batch_runs.py), so learning runs
-    of their own (autograd, a second seed: 100 to 140 s each in CI) were dropped to keep the suite under 15 minutes.
-    The results pages (docs/results.md) show learning on MuJoCo with several seeds."""
+@pytest.mark.parametrize("seed", [0], ids=["compiled-0"])
+def test_td3x_learns_pendulum(seed, monkeypatch):
+    """The default update of a long run (the hooks compiled, compile_update=None on a CPU) on one seed. The eager
+    hooks compute the same weights from one seed to float rounding (tests/equivalence: test_user_changes.py's stock
+    cases; test_same_learning.py against SB3's TD3), and a batched seed is its lone run to the bit
+    (tests/framework/test_seed_batch_runs.py), so learning runs of their own (eager, a second seed: 100 to 140 s each
+    in CI) were dropped to keep the suite under 15 minutes. The results pages (docs/results.md) show learning on
+    MuJoCo with several seeds."""
+    monkeypatch.setattr(TD3X, "compile_auto_min_steps", 0)  # this run counts as long
     env = gym.make("Pendulum-v1")
     model = TD3X(
         "MlpPolicy",
@@ -29,10 +31,9 @@ def test_td3x_learns_pendulum(seed, mlp_update):
         learning_starts=1_000,
         action_noise=NormalActionNoise(np.zeros(1), 0.1 * np.ones(1)),
         seed=seed,
-        mlp_update=mlp_update,
     )
     model.learn(total_timesteps=8_000)
-    assert model.update_path == ("mlp" if mlp_update else "autograd")
+    assert model.update_path == "compiled"
     eval_env = Monitor(gym.make("Pendulum-v1"))
     eval_env.reset(seed=10_000 + seed)
     mean_return, std_return = evaluate_policy(model, eval_env, n_eval_episodes=10, deterministic=True)

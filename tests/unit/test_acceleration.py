@@ -1,5 +1,5 @@
-"""The accelerations: bf16 autocast, torch.compile (by default on a long CPU run), and the CUDA-graph path's logic
-(run on the CPU)."""
+"""The accelerations: bf16 autocast, the compiled update (by default on a long CPU run), and the CUDA-graph path's
+logic (run on the CPU)."""
 
 import os
 import warnings
@@ -17,6 +17,7 @@ from stable_baselines3.common.type_aliases import ReplayBufferSamples
 
 from sb3_td3x import TD3X
 from sb3_td3x.common.buffers import TensorReplayBuffer
+from sb3_td3x.td3x.optim import apply_gradients, gradients
 from sb3_td3x.td3x.update_paths import precision
 from sb3_td3x.td3x.update_paths.cuda_graph import GraphedGradientStep
 
@@ -54,11 +55,9 @@ def test_bf16_keeps_fp32_weights_and_follows_fp32_closely():
 
 def train_fed(model: TD3X, data: list[ReplayBufferSamples], progresses=(1.0, 0.5, 0.25)) -> None:
     feed(model, data, seed=0)
-    # Random ops as in eager mode (Inductor draws its own random numbers otherwise)
-    with th._inductor.config.patch(fallback_random=True):
-        for progress in progresses:  # the learning rate changes between train() calls
-            model._current_progress_remaining = progress
-            model.train(gradient_steps=2, batch_size=32)
+    for progress in progresses:  # the learning rate changes between train() calls
+        model._current_progress_remaining = progress
+        model.train(gradient_steps=2, batch_size=32)
 
 
 class HuberTD3X(TD3X):
@@ -72,9 +71,9 @@ class HuberTD3X(TD3X):
 
 @pytest.mark.parametrize("variant", ["adam", "adamw_weight_decay", "huber_critic_loss"])
 def test_compiled_update_matches_eager_steps(variant):
-    """compile_update=True computes the same updates as the eager hooks (to float rounding), overridden loss hooks
-    included, follows a learning-rate schedule without recompiling (one graph with the actor update, one without),
-    and has no graph break."""
+    """compile_update=True computes the same updates as the eager hooks (to float rounding), overridden loss hooks and
+    AdamW's decoupled weight decay included, follows a learning-rate schedule without recompiling (one graph with the
+    actor update, one without), and has no graph break."""
     kwargs = {"learning_rate": lambda progress: 1e-3 * progress}
     if variant == "huber_critic_loss":
         kwargs["cls"] = HuberTD3X
@@ -88,24 +87,23 @@ def test_compiled_update_matches_eager_steps(variant):
     counters = th._dynamo.utils.counters
     graphs_before, breaks_before = counters["stats"]["unique_graphs"], sum(counters["graph_break"].values())
     train_fed(compiled, data)
-    # At most one graph with the actor update and one without (none when an earlier test compiled MlpUpdate's
-    # module-level functions for the same shapes: they are shared by every model).
-    assert counters["stats"]["unique_graphs"] - graphs_before <= 2
+    # One graph with the actor update and one without: the schedule's learning rates are tensors the graphs read.
+    assert counters["stats"]["unique_graphs"] - graphs_before == 2
     assert sum(counters["graph_break"].values()) == breaks_before
-    # Standard hooks: MlpUpdate's hand-written gradients compiled; an overridden loss: the hooks made functional.
-    assert compiled.update_path == ("compiled" if variant == "huber_critic_loss" else "compiled_mlp")
+    assert compiled.update_path == "compiled"
     assert_same_weights(eager, compiled, rtol=1e-4, atol=1e-5)
     assert compiled.logger.name_to_value["train/critic_loss"] == pytest.approx(
         eager.logger.name_to_value["train/critic_loss"], rel=1e-4)
 
 
-@pytest.mark.parametrize("bf16, mlp_update", [(False, True), (True, True), (True, False)])
-def test_compiled_update_stays_finite_in_a_run(bf16, mlp_update):
-    """A short real run of each compiled path: MlpUpdate compiled (fp32 and bf16), and the hooks made functional
-    (bf16)."""
-    model = small(compile_update=True, bf16=bf16, mlp_update=mlp_update, policy_kwargs={"net_arch": [64, 64]})
-    model.learn(60)
-    assert model.update_path == ("compiled_mlp" if mlp_update else "compiled")
+@pytest.mark.parametrize("bf16", [False, True])
+def test_compiled_update_stays_finite_in_a_run(bf16):
+    """A short real run of the compiled update, fp32 and bf16 (the forward passes under autocast, in the graph)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # bf16 on a CPU without bf16 instructions warns (tested below)
+        model = small(compile_update=True, bf16=bf16, policy_kwargs={"net_arch": [64, 64]})
+        model.learn(60)
+    assert model.update_path == "compiled"
     assert all(p.isfinite().all() for p in model.policy.parameters())
     assert np.isfinite(model.logger.name_to_value["train/critic_loss"])
 
@@ -126,23 +124,44 @@ def test_compiled_update_keeps_the_optimizer_state_usable_eagerly():
     assert_same_weights(eager, switched, rtol=1e-4, atol=1e-5)
 
 
-def test_compile_update_falls_back_with_a_warning_when_the_optimizer_step_is_overridden():
-    """An overridden optimize_critic cannot be made functional: the update is compiled as it is, and still used."""
+class ClippedTD3X(TD3X):
+    """Step 12 with the gradients clipped, written with :func:`~sb3_td3x.td3x.optim.gradients` and
+    :func:`~sb3_td3x.td3x.optim.apply_gradients`: compiled in one graph with the rest."""
 
-    class ClippedTD3X(TD3X):
-        def optimize_critic(self, loss):
-            self.critic.optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            self.clipped = True
-            self.critic.optimizer.step()
+    def optimize_critic(self, loss):
+        grads = gradients(self.critic.optimizer, loss)
+        norm = th.linalg.vector_norm(th.stack([th.linalg.vector_norm(g) for g in grads]))
+        scale = (0.05 / (norm + 1e-6)).clamp(max=1.0)
+        apply_gradients(self.critic.optimizer, [g * scale for g in grads])
 
-    model = ClippedTD3X("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(net_arch=[8]), learning_starts=0, seed=0,
-                        batch_size=4, compile_update=True)
-    model.set_logger(configure(None, []))
-    with pytest.warns(UserWarning, match="optimize_critic overridden by ClippedTD3X"):
-        model.learn(3)
-    assert model.clipped
-    assert model.update_path == "compiled_eager_backward"
+
+class ZeroGradClippedTD3X(TD3X):
+    """The same, written as in eager PyTorch: optimizer.zero_grad() cannot be compiled, so the update runs eagerly."""
+
+    def optimize_critic(self, loss):
+        self.critic.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        th.nn.utils.clip_grad_norm_(self.critic.parameters(), 0.05)
+        self.critic.optimizer.step()
+
+
+def test_a_clipped_critic_step_is_compiled_when_written_with_gradients_and_apply_gradients():
+    eager, compiled = small(cls=ClippedTD3X), small(cls=ClippedTD3X, compile_update=True)
+    compiled.policy.load_state_dict(eager.policy.state_dict())
+    reference = small(cls=ZeroGradClippedTD3X)
+    reference.policy.load_state_dict(eager.policy.state_dict())
+    data = batches(6)
+    for model in (eager, compiled, reference):
+        train_fed(model, data)
+    assert compiled.update_path == "compiled" and eager.update_path == "eager"
+    assert_same_weights(eager, compiled, rtol=1e-4, atol=1e-5)
+    assert_same_weights(reference, eager, rtol=1e-5, atol=1e-6)  # gradients/apply_gradients is clip_grad_norm_'s step
+    unclipped = small()
+    unclipped.policy.load_state_dict(reference.policy.state_dict())
+    train_fed(unclipped, data)  # (from the trained weights: only to show the clipping moves the update)
+    zero_grad = small(cls=ZeroGradClippedTD3X, compile_update=True)
+    train_fed(zero_grad, data)
+    assert zero_grad.update_path == "eager" and "Optimizer.zero_grad" in zero_grad.update_reason
 
 
 def test_cuda_graph_needs_cuda():
@@ -153,8 +172,7 @@ def test_cuda_graph_needs_cuda():
 def test_graphed_step_logic_matches_eager_steps():
     """Warm-up and capture leave no trace (weights, optimizer states, the random generator: the smoothing noise of
     each replay is the eager step's), each (batch size, actor update) gets its graph, outputs are copied."""
-    # The eager side runs the hooks with autograd, as the graph does (MlpUpdate would differ by rounding).
-    eager, graphed = small(policy_delay=2, mlp_update=False), small(policy_delay=2)
+    eager, graphed = small(policy_delay=2), small(policy_delay=2)
     graphed.policy.load_state_dict(eager.policy.state_dict())
     data = batches(6)
     junk = batches(1, seed=99)[0]
@@ -249,7 +267,7 @@ def test_bf16_learns_pendulum():
     model = TD3X("MlpPolicy", gym.make("Pendulum-v1"), learning_starts=1_000, bf16=True, seed=0,
                  policy_kwargs={"net_arch": [64, 64]}, action_noise=NormalActionNoise(np.zeros(1), 0.1 * np.ones(1)))
     model.learn(8_000)
-    assert model.update_path == "mlp"  # MlpUpdate's bf16 products
+    assert model.update_path == "eager"  # the forward passes under bf16 autocast
     mean_return, _ = evaluate_policy(model, Monitor(gym.make("Pendulum-v1")), n_eval_episodes=10, deterministic=True)
     print(f"bf16: mean return {mean_return:.1f}")
     assert mean_return >= -250
@@ -265,7 +283,7 @@ def test_compiled_update_learns_pendulum(bf16):
     model = TD3X("MlpPolicy", gym.make("Pendulum-v1"), learning_starts=1_000, compile_update=True, bf16=bf16, seed=1,
                  policy_kwargs=dict(net_arch=net_arch), action_noise=NormalActionNoise(np.zeros(1), 0.1 * np.ones(1)))
     model.learn(8_000)
-    assert model.update_path == "compiled_mlp"
+    assert model.update_path == "compiled"
     mean_return, _ = evaluate_policy(model, Monitor(gym.make("Pendulum-v1")), n_eval_episodes=10, deterministic=True)
     print(f"compile (bf16={bf16}): mean return {mean_return:.1f}")
     assert mean_return >= -250
@@ -287,7 +305,7 @@ def test_gpu_trained_model_loads_on_cpu_without_graphs(tmp_path):
     for group in (*loaded.actor.optimizer.param_groups, *loaded.critic.optimizer.param_groups):
         assert group["capturable"] is False and isinstance(group["lr"], float)
     loaded.learn(150)
-    assert loaded.update_path == "mlp"
+    assert loaded.update_path == "eager"
 
 
 def test_a_changed_setting_captures_the_graphs_again():

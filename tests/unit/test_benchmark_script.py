@@ -80,7 +80,7 @@ def test_timing_puts_the_model_back_and_training_goes_on(throughput):
     rows = replay.breakdown(rounds=3)
     assert all(th.equal(a, b) for a, b in zip(state, replay.state))
     assert rows["_fused_adam_"]["calls_per_step"] == 1.5  # the critics' every step, the actor's every other step
-    assert {name for name, row in rows.items() if row["product"]} >= {"baddbmm", "bmm"}
+    assert {name for name, row in rows.items() if row["product"]} >= {"addmm", "mm"}  # the eager hooks: nn.Linear
     assert all(row["ms_per_step"] > 0.0 for row in rows.values())
     products = replay.plans["products"]
     assert products and all(call[0] in throughput.PRODUCT_OPS for call in products)

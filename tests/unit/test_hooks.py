@@ -144,14 +144,17 @@ def grads(module: th.nn.Module) -> list:
     return [p.grad for p in module.parameters()]
 
 
-def test_actor_loss_leaves_critic_without_gradient():
+def test_the_actor_step_leaves_critic_without_gradient():
+    """Step 13 differentiates the actor loss with respect to the actor's parameters only (optimize_actor): the
+    critic, whose Q_1 the loss goes through, gets no gradient and is not stepped."""
     model = make_model()
+    critic_before = [p.detach().clone() for p in model.critic.parameters()]
     loss, _ = model.actor_loss(make_batch().observations)
-    loss.backward()
+    model.optimize_actor(loss)
     assert all(g is None for g in grads(model.critic))
     assert all(g is not None and g.abs().sum() > 0 for g in grads(model.actor))
     assert all(g is None for g in grads(model.actor_target) + grads(model.critic_target))
-    # The critic is trainable again afterwards.
+    assert all(th.equal(a, b) for a, b in zip(critic_before, model.critic.parameters()))
     assert all(p.requires_grad for p in model.critic.parameters())
 
 
@@ -308,6 +311,6 @@ def test_a_hook_can_be_overridden():
 
     huber, plain = trained(HuberTD3X), trained(TD3X)
     assert huber._n_updates == 70 and HuberTD3X.calls == 70
-    assert huber.update_path == "autograd" and "critic_loss overridden by HuberTD3X" in huber.update_reason
+    assert huber.update_path == "eager"  # a short run: the hooks as written, eagerly
     difference = max(float((a - b).abs().max()) for a, b in zip(huber.critic.parameters(), plain.critic.parameters()))
     assert difference > 1e-3

@@ -1,27 +1,22 @@
-"""How the update runs: one function picks it, says why, and the layout has no import circle."""
+"""How the update runs: one function picks it from the machine and the run, says why, and the layout has no import
+circle."""
 
 import ast
-import functools
-import importlib
-import warnings
 from pathlib import Path
 
 import gymnasium as gym
 import pytest
 import torch as th
-from conftest import eager_capture
-from stable_baselines3.common.buffers import ReplayBuffer
-from stable_baselines3.common.logger import HumanOutputFormat, Logger, configure
-from stable_baselines3.common.save_util import load_from_zip_file
-from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.logger import HumanOutputFormat, Logger
 
 from sb3_td3x.experiment.errors import ConfigError
 from sb3_td3x.experiment.schemas import check_config, compose_config, whole_float_problems
 from sb3_td3x.td3x import TD3X, TD3XCritic, TD3XPolicy, UnsupportedActionSpace
 from sb3_td3x.td3x.hooks import HOOK_NAMES, HOOKS, changed_hooks, reference_class
-from sb3_td3x.td3x.update_paths import choose
-from sb3_td3x.td3x.update_paths.choose import AUTO_GRAPHS, choose_update
-from sb3_td3x.td3x.update_paths.cuda_graph import GraphedGradientStep, why_not_cuda_graph
+from sb3_td3x.td3x.update_paths import compiled
+from sb3_td3x.td3x.update_paths.choose import choose_update
+from sb3_td3x.td3x.update_paths.compiled import why_not_compile
 
 PACKAGE = Path(__file__).resolve().parents[2] / "sb3_td3x" / "td3x"
 
@@ -51,59 +46,67 @@ def first_update_line(model: TD3X, tmp_path: Path) -> str:
     return lines[0]
 
 
-def test_the_stock_model_logs_the_mlp_update(tmp_path):
+def test_a_short_run_logs_the_eager_update_and_why(tmp_path):
     model = small()
     line = first_update_line(model, tmp_path)
-    assert line.startswith("update: mlp (MlpUpdate: ") and "exploration: direct_mlp" in line
-    assert (model.update_path, model.exploration_path) == ("mlp", "direct_mlp")
+    assert line.startswith("update: eager (compile_update=None (auto), not compiled: a run of 10 training steps")
+    assert "pays for itself from 100,000" in line and "exploration: actor (the actor module called directly)" in line
+    assert (model.update_path, model.exploration_path) == ("eager", "actor")
+    assert model.compile_update is None and not model.update_compiled
 
 
-def test_a_subclassed_critic_forward_is_named_in_the_update_line(tmp_path):
-    model = small(ScaledCriticPolicy)
-    line = first_update_line(model, tmp_path)
-    assert line.startswith(
-        "update: autograd (the critic is a ScaledCritic, not SB3's TD3XCritic (critic.forward overridden by ScaledCritic)"
-    )
-    assert model.update_path == "autograd" and "critic.forward overridden by ScaledCritic" in model.update_reason
-    assert "exploration: direct_mlp" in line  # the actor is SB3's: collection keeps its shortcut
+def test_a_users_change_does_not_enter_the_choice(tmp_path):
+    """The same choice, and the same words, for a changed critic, a hook set on the instance and the stock model."""
+    changed = small(ScaledCriticPolicy)
+    changed.td_target = lambda rewards, dones, discounts, next_q: rewards
+    for model in (small(), changed):
+        model.compile_auto_min_steps = 0
+        choice = choose_update(model)
+        assert (choice.path, choice.reason) == ("compiled", "compile_update=None (auto): a run of 0 training steps on a CPU; "
+                                                "the hooks as written, one graph")
 
 
-def test_a_hook_set_on_the_instance_is_named(tmp_path):
-    model = small()
-    model.td_target = lambda rewards, dones, discounts, next_q: rewards
-    line = first_update_line(model, tmp_path)
-    assert line.startswith("update: autograd (td_target set on the instance")
-
-
-def test_a_hook_set_after_the_first_train_is_honoured(tmp_path):
-    model = small()
+def test_a_hook_set_after_the_first_train_is_compiled_with_the_rest(tmp_path):
+    model = small(compile_update=True, batch_size=16)
     model.learn(20)
-    assert model.update_path == "mlp"
+    assert model.update_path == "compiled"
     calls = []
 
     def td_target(rewards, dones, discounts, next_q):
-        calls.append(1)
+        calls.append(1)  # a side effect Dynamo replays at every call
         return rewards
 
     model.td_target = td_target
     model.learn(10, reset_num_timesteps=False)
-    assert model.update_path == "autograd" and "td_target set on the instance" in model.update_reason and calls
-    del model.td_target  # back to the stock hook: the fast path again
+    assert model.update_path == "compiled" and len(calls) == 10
+    del model.td_target  # back to the stock hook
     model.learn(10, reset_num_timesteps=False)
-    assert model.update_path == "mlp"
+    assert model.update_path == "compiled" and len(calls) == 10
 
 
-def test_mlp_update_false_is_the_reason():
-    model = small(mlp_update=False)
-    choice = choose_update(model)
-    assert (choice.path, choice.reason) == ("autograd", "mlp_update=False")
+class PrintingTD3X(TD3X):
+    """A hook Dynamo cannot put in one graph: ``.item()`` and a print."""
+
+    def critic_loss(self, current_q, target_q):
+        loss, info = super().critic_loss(current_q, target_q)
+        print(f"critic loss {loss.item():.3f}")
+        return loss, info
 
 
-def test_every_reason_is_listed_not_only_the_first():
-    model = small(policy_kwargs={"net_arch": [16], "activation_fn": th.nn.Tanh})
-    model.critic_loss = lambda current_q, target_q: (current_q.sum(), {})
-    reason = choose_update(model).reason
-    assert "critic_loss set on the instance" in reason and "not a ReLU MLP" in reason
+def test_a_hook_that_breaks_the_graph_runs_eagerly_and_says_why(capsys):
+    def trained(compile_update):
+        model = PrintingTD3X("MlpPolicy", "Pendulum-v1", policy_kwargs={"net_arch": [16]}, learning_starts=10, seed=0,
+                             batch_size=16, compile_update=compile_update)
+        model.learn(30)
+        return model
+
+    fast = trained(True)
+    eager = trained(False)
+    assert fast.update_path == "eager" and fast.update_compiled
+    assert "torch.compile cannot make one graph of it" in fast.update_reason and "the update runs eagerly" in fast.update_reason
+    assert capsys.readouterr().out.count("critic loss") == 2 * 20  # every step printed, none lost to a graph
+    for a, b in zip(fast.policy.parameters(), eager.policy.parameters()):
+        assert th.equal(a, b)
 
 
 def test_changed_hooks_and_the_reference_class():
@@ -124,18 +127,6 @@ def test_the_hook_list_is_the_td3x_methods_and_the_docstring_table():
     for hook in HOOKS:
         assert callable(getattr(TD3X, hook.name)), hook.name
         assert f":meth:`{hook.name}`" in TD3X.__doc__, f"{hook.name} is missing from the TD3X docstring table"
-
-
-def test_every_fast_path_declares_what_it_replaces_among_the_hooks():
-    from sb3_td3x.td3x.update_paths.compiled import FunctionalCompiledUpdate
-    from sb3_td3x.td3x.update_paths.exploration import DirectMlpActor
-    from sb3_td3x.td3x.update_paths.mlp import MlpUpdate
-
-    for path in (MlpUpdate, FunctionalCompiledUpdate, DirectMlpActor):
-        assert set(path.replaces) <= set(HOOK_NAMES), path
-    # MlpUpdate writes out every hook of steps 5 to 13; the ones it calls are the model's own.
-    assert set(HOOK_NAMES) - set(MlpUpdate.replaces) == {
-        "sample_batch", "should_update_actor", "update_actor_target", "update_critic_target"}
 
 
 def _module_imports(path: Path) -> set[str]:
@@ -161,8 +152,11 @@ def test_no_import_circle_in_the_algorithm_package():
         modules[name] = path
     graph = {name: {m for m in _module_imports(path) if m in modules and m != name} for name, path in modules.items()}
     for name in modules:
-        if name.startswith("sb3_td3x.td3x.update_paths") or name == "sb3_td3x.td3x.hooks":
+        if name.startswith("sb3_td3x.td3x.update_paths") or name in ("sb3_td3x.td3x.hooks", "sb3_td3x.td3x.optim"):
             assert "sb3_td3x.td3x.td3x" not in graph[name], f"{name} imports TD3X: the paths must not"
+    for name, path in modules.items():  # not even for type checking: farm-studio counts those too
+        assert "from sb3_td3x.td3x.td3x import" not in path.read_text() or name in (
+            "sb3_td3x.td3x.seed_batch", "sb3_td3x.td3x.presets", "sb3_td3x.td3x"), name
     visiting, done = set(), set()
 
     def visit(name, trail):
@@ -179,229 +173,17 @@ def test_no_import_circle_in_the_algorithm_package():
         visit(name, [])
 
 
-# cuda_graph=None (auto): CUDA graphs only for a stock, capturable update ------------------------------------------
-class TargetOverride(TD3X):
-    def update_critic_target(self):
-        super().update_critic_target()
-
-
-class SampleOverride(TD3X):
-    def sample_batch(self, batch_size):
-        return super().sample_batch(batch_size)
-
-
-class DictObservation(gym.ObservationWrapper):
-    def __init__(self, env):
-        super().__init__(env)
-        self.observation_space = gym.spaces.Dict({"state": env.observation_space})
-
-    def observation(self, observation):
-        return {"state": observation}
-
-
-def pendulum_vec_normalize() -> VecNormalize:
-    return VecNormalize(DummyVecEnv([lambda: gym.make("Pendulum-v1")]))
-
-
-def with_hook(model: TD3X) -> TD3X:
-    """``td_target`` set on the instance, computing the stock target: a change auto must not freeze in a graph."""
-    model.td_target = lambda rewards, dones, discounts, next_q: TD3X.td_target(model, rewards, dones, discounts, next_q)
-    return model
-
-
-def with_wrapped_critic(model: TD3X) -> TD3X:
-    model.critic.forward = lambda obs, actions, forward=model.critic.forward: forward(obs, actions)
-    return model
-
-
-def with_vec_normalize(model: TD3X) -> TD3X:
-    model.set_env(pendulum_vec_normalize())
-    return model
-
-
-def small_then(change):
-    """A builder of ``small()`` with ``change(model)`` made after construction."""
-    def build():
-        model = small()
-        change(model)
-        return model
-
-    return build
-
-
-@pytest.mark.parametrize(
-    ("build", "reason"),
-    [
-        (small, None),
-        (lambda: small(policy_kwargs={"net_arch": [16], "optimizer_class": th.optim.AdamW}), None),
-        (lambda: small(compile_update=True), "compile_update=True"),
-        (lambda: small(bf16=True), "bf16=True"),
-        (lambda: small(mlp_update=False), "mlp_update=False"),
-        (lambda: small(n_steps=3), "the replay buffer is a NStepReplayBuffer, not TD3X's TensorReplayBuffer"),
-        (lambda: small(replay_buffer_class=ReplayBuffer), "the replay buffer is a ReplayBuffer, not"),
-        (lambda: TD3X("MultiInputPolicy", DictObservation(gym.make("Pendulum-v1")), policy_kwargs={"net_arch": [16]}),
-         "the replay buffer is a DictReplayBuffer, not"),
-        (lambda: TD3X("MlpPolicy", pendulum_vec_normalize(), policy_kwargs={"net_arch": [16]}),
-         "VecNormalize normalises the samples on the host"),
-        (lambda: small(policy_kwargs={"net_arch": [16], "optimizer_class": th.optim.SGD}),
-         "the actor's optimizer is SGD, not torch's Adam or AdamW"),
-        (small_then(lambda m: m.critic.optimizer.register_step_post_hook(lambda *args: None)),
-         "step hooks on the critic's optimizer"),
-        (lambda: TargetOverride("MlpPolicy", "Pendulum-v1", policy_kwargs={"net_arch": [16]}),
-         "update_critic_target overridden by TargetOverride"),
-        (lambda: SampleOverride("MlpPolicy", "Pendulum-v1", policy_kwargs={"net_arch": [16]}),
-         "sample_batch overridden by SampleOverride"),
-        (small_then(with_hook), "td_target set on the instance"),
-        (small_then(with_wrapped_critic), "critic.forward set on the instance"),
-        (lambda: small(ScaledCriticPolicy), "critic.forward overridden by ScaledCritic"),
-        (lambda: small(policy_kwargs={"net_arch": [16], "activation_fn": th.nn.Tanh}), "not a ReLU MLP"),
-        (small_then(lambda m: m.critic.q_networks[0].register_forward_hook(lambda *args: None)),
-         "a forward hook on policy.critic.qf0"),
-        (small_then(lambda m: m.actor.mu[0].weight.register_hook(lambda grad: grad)), "a gradient hook on actor.mu.0.weight"),
-    ],
-    ids=["stock", "adamw", "compile_update", "bf16", "mlp_update_false", "n_steps", "sb3_buffer", "dict_obs",
-         "vec_normalize", "sgd", "optimizer_hook", "subclass_hook", "sample_batch", "instance_hook", "wrapped_critic",
-         "subclassed_critic", "tanh", "module_hook", "gradient_hook"],
-)
-def test_auto_takes_cuda_graphs_only_for_a_stock_capturable_update(build, reason):
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # bf16 on a CPU without bf16 instructions warns (test_acceleration.py)
-        model = build()
-    assert why_not_cuda_graph(model) == "no CUDA device"  # this machine's
-    got = why_not_cuda_graph(model, device="cuda")
-    if reason is None:
-        assert got is None
-    else:
-        assert got is not None and reason in got
-
-
 def test_cuda_graph_is_none_true_or_false():
     with pytest.raises(ValueError, match=r"invalid cuda_graph='auto'; cuda_graph must be None \(auto"):
         small(cuda_graph="auto")
 
 
-def test_on_a_cpu_auto_is_the_eager_update_of_before(tmp_path):
+def test_on_a_cpu_nothing_is_set_up_for_cuda_graphs():
     model = small()
     assert (model.cuda_graph_request, model.cuda_graph) == (None, False)
-    assert model.cuda_graph_reason == "cuda_graph=None (auto): no CUDA device"
     assert not model.replay_buffer.static_sampling
     for group in (*model.actor.optimizer.param_groups, *model.critic.optimizer.param_groups):
         assert group["capturable"] is False and isinstance(group["lr"], float)
-    assert first_update_line(model, tmp_path).startswith("update: mlp (MlpUpdate: ")
-
-
-def pretend_cuda(monkeypatch) -> None:
-    """Auto decides as on a CUDA device, and the graphs are captured by the CPU stand-in (``eager_capture``): all but
-    the device and the capture itself runs as it would on a GPU."""
-    pretend = functools.partial(why_not_cuda_graph, device="cuda")
-    monkeypatch.setattr(importlib.import_module("sb3_td3x.td3x.td3x"), "why_not_cuda_graph", pretend)
-    monkeypatch.setattr(choose, "why_not_cuda_graph", pretend)
-    monkeypatch.setattr(choose, "GraphedGradientStep", functools.partial(GraphedGradientStep, capture=eager_capture))
-
-
-def set_up_for(model: TD3X) -> str:
-    """What the optimizers and the buffer are set up for: "graphs", "eager", or "mixed" (a bug)."""
-    groups = [*model.actor.optimizer.param_groups, *model.critic.optimizer.param_groups]
-    graphs = [group.get("capturable", False) for group in groups] + [isinstance(group["lr"], th.Tensor) for group in groups]
-    graphs.append(model.replay_buffer.static_sampling)
-    return "graphs" if all(graphs) else "eager" if not any(graphs) else "mixed"
-
-
-def test_auto_runs_a_stock_model_in_cuda_graphs(monkeypatch, tmp_path):
-    pretend_cuda(monkeypatch)
-    model = small()
-    assert model.cuda_graph and model.cuda_graph_reason == AUTO_GRAPHS and set_up_for(model) == "graphs"
-    line = first_update_line(model, tmp_path)
-    assert line.startswith(f"update: cuda_graph ({AUTO_GRAPHS})")
-    assert isinstance(model._step_fn, GraphedGradientStep) and sorted(model._step_fn._graphs) == [(256, False), (256, True)]
-    assert model._n_updates == 10 and all(th.isfinite(p).all() for p in model.policy.parameters())
-
-
-@pytest.mark.parametrize(
-    ("change", "path", "reason"),
-    [
-        (with_hook, "autograd", "td_target set on the instance"),
-        (with_wrapped_critic, "autograd", "critic.forward set on the instance"),
-        (with_vec_normalize, "mlp", "VecNormalize normalises the samples on the host; MlpUpdate: "),
-    ],
-    ids=["instance_hook", "wrapped_critic", "vec_normalize"],
-)
-def test_auto_steps_aside_for_a_change_made_after_construction(monkeypatch, change, path, reason):
-    """Set up for graphs when built, the model is changed before its first train(): the eager choice runs, set up as
-    with cuda_graph=False, and trains what such a model trains from the same seed."""
-    pretend_cuda(monkeypatch)
-    auto, eager = small(), small(cuda_graph=False)
-    assert set_up_for(auto) == "graphs" and set_up_for(eager) == "eager"
-    for model in (auto, eager):
-        change(model).set_logger(configure(None, []))
-        model.set_random_seed(1)  # the same generators (and env seeds) for both
-        model.learn(40)
-    assert (auto.update_path, eager.update_path) == (path, path)
-    assert auto.update_reason.startswith(f"cuda_graph=None (auto) stepped aside from CUDA graphs: {reason}")
-    assert not auto.cuda_graph and auto.cuda_graph_reason.startswith("cuda_graph=None (auto) stepped aside")
-    assert set_up_for(auto) == "eager"
-    for (name, a), b in zip(eager.policy.state_dict().items(), auto.policy.state_dict().values()):
-        assert th.equal(a, b), name
-
-
-def replaced_critic_optimizer(model: TD3X) -> TD3X:
-    model.critic.optimizer = th.optim.SGD(model.critic.parameters(), lr=1e-3)
-    return model
-
-
-@pytest.mark.parametrize(
-    ("change", "path", "reason"),
-    [
-        (with_hook, "autograd", "td_target set on the instance"),
-        (with_vec_normalize, "mlp", "VecNormalize normalises the samples on the host"),
-        (replaced_critic_optimizer, "mlp", "the critic's optimizer is SGD, not torch's Adam or AdamW"),
-    ],
-    ids=["instance_hook", "vec_normalize", "critic_optimizer"],
-)
-def test_auto_steps_aside_for_a_change_made_after_the_graphs_ran(monkeypatch, change, path, reason):
-    pretend_cuda(monkeypatch)
-    model = small()
-    model.set_logger(configure(None, []))
-    model.learn(20)
-    assert model.update_path == "cuda_graph"
-    change(model).learn(20, reset_num_timesteps=False)
-    assert model.update_path == path and f"stepped aside from CUDA graphs: {reason}" in model.update_reason
-    assert set_up_for(model) == "eager" and model._n_updates == 30
-
-
-def test_a_model_saved_with_auto_loads_where_there_is_no_cuda_and_trains_eagerly(monkeypatch, tmp_path):
-    pretend_cuda(monkeypatch)
-    model = small()
-    model.set_logger(configure(None, []))
-    model.learn(20)  # in graphs: the optimizers' states are saved with capturable=True and learning rates in tensors
-    model.save(tmp_path / "auto")
-    data, _, _ = load_from_zip_file(tmp_path / "auto")
-    assert data["cuda_graph_request"] is None and "cuda_graph" not in data and "cuda_graph_reason" not in data
-    monkeypatch.undo()  # a machine without CUDA
-    with warnings.catch_warnings(record=True) as record:
-        warnings.simplefilter("always")
-        loaded = TD3X.load(tmp_path / "auto", env=gym.make("Pendulum-v1"), device="cpu")
-    assert not [w for w in record if "cuda" in str(w.message).lower() or "capturable" in str(w.message)]
-    assert loaded.cuda_graph_request is None and loaded.cuda_graph_reason == "cuda_graph=None (auto): no CUDA device"
-    assert set_up_for(loaded) == "eager"
-    loaded.set_logger(configure(None, []))
-    loaded.learn(20)
-    assert loaded.update_path == "mlp"
-
-
-def test_a_model_saved_eagerly_loads_into_cuda_graphs_and_load_takes_cuda_graph(monkeypatch, tmp_path):
-    small().save(tmp_path / "eager")  # on this CPU: capturable=False and float learning rates in its optimizer states
-    pretend_cuda(monkeypatch)
-    loaded = TD3X.load(tmp_path / "eager", env=gym.make("Pendulum-v1"))
-    assert loaded.cuda_graph and set_up_for(loaded) == "graphs"  # set up again after the optimizer states were loaded
-    loaded.set_logger(configure(None, []))
-    loaded.learn(20)
-    assert loaded.update_path == "cuda_graph"
-    opted_out = TD3X.load(tmp_path / "eager", env=gym.make("Pendulum-v1"), cuda_graph=False)
-    assert (opted_out.cuda_graph_request, opted_out.cuda_graph, set_up_for(opted_out)) == (False, False, "eager")
-    monkeypatch.undo()
-    with pytest.warns(UserWarning, match="cuda_graph=True needs a CUDA device"):
-        TD3X.load(tmp_path / "eager", env=gym.make("Pendulum-v1"), cuda_graph=True)
 
 
 # Drop-in details -----------------------------------------------------------------------------------------------------
@@ -448,25 +230,10 @@ def test_a_whole_float_for_an_integer_field_says_how_to_write_it():
         compose_config(["algo.batch_size=25.5"])
 
 
-# --- compile_update=None (auto): compiled where it wins, never a user's change ------------------------------------------
-class LongRunTD3X(TD3X):
-    """Every run counts as long enough to compile (the threshold is a class attribute a user can set too)."""
-
-    compile_auto_min_steps = 0
-
-
-def test_auto_does_not_compile_a_short_run_and_says_why(tmp_path):
-    model = small()
-    line = first_update_line(model, tmp_path)
-    assert model.compile_update is None and not model.update_compiled and model.update_path == "mlp"
-    assert "compile_update=None (auto), not compiled: a run of 10 training steps" in model.compile_reason
-    assert "pays for itself from 100,000" in line
-
-
-def test_auto_compiles_a_long_stock_run_and_a_resumed_run_decides_as_the_whole_run(tmp_path):
+# --- compile_update=None (auto): compiled on a long run, whatever the code --------------------------------------------
+def test_auto_compiles_a_long_run_and_a_resumed_run_decides_as_the_whole_run(tmp_path):
     """The run's length is its target less learning_starts: a run stopped part-way and resumed with learn() of the
     rest (reset_num_timesteps=False, as run.py resumes) decides as the uninterrupted run did, from its first step."""
-    from stable_baselines3.common.callbacks import BaseCallback
 
     class StopAt40(BaseCallback):
         def _on_step(self) -> bool:
@@ -478,7 +245,7 @@ def test_auto_compiles_a_long_stock_run_and_a_resumed_run_decides_as_the_whole_r
         return model
 
     whole = build().learn(60)
-    assert whole.update_compiled and whole.update_path == "compiled_mlp"
+    assert whole.update_compiled and whole.update_path == "compiled"
     assert whole.update_reason.startswith("compile_update=None (auto): a run of 50 training steps on a CPU")
     stopped = build().learn(60, callback=StopAt40())
     assert stopped.num_timesteps == 40 and stopped.update_compiled  # compiled from its first gradient step
@@ -487,35 +254,22 @@ def test_auto_compiles_a_long_stock_run_and_a_resumed_run_decides_as_the_whole_r
     assert resumed.compile_update is None and not resumed.update_compiled  # the request is saved, not the decision
     resumed.compile_auto_min_steps = 50
     resumed.learn(60 - resumed.num_timesteps, reset_num_timesteps=False)
-    assert resumed.update_compiled and resumed.update_path == "compiled_mlp", resumed.compile_reason
+    assert resumed.update_compiled and resumed.update_path == "compiled", resumed.compile_reason
     asked_less = build().learn(40)  # a run of 30 training steps: not compiled
     assert not asked_less.update_compiled and "a run of 30 training steps" in asked_less.compile_reason
     asked_less.learn(20, reset_num_timesteps=False)  # continued to a run of 50: compiled from here
-    assert asked_less.update_compiled
+    assert asked_less.update_compiled and asked_less.update_path == "compiled"
 
 
-@pytest.mark.parametrize(
-    ("build", "reason"),
-    [
-        (lambda: small(mlp_update=False), "mlp_update=False"),
-        (lambda: small(policy=ScaledCriticPolicy), "the hooks run as written (the critic is a ScaledCritic, not SB3's TD3XCritic"),
-        (lambda: small_then(with_hook)(), "the hooks run as written (td_target set on the instance)"),
-        (lambda: small(compile_update=False), "compile_update=False"),
-    ],
-    ids=["mlp_update_false", "critic_forward", "hook_on_instance", "opted_out"],
-)
-def test_auto_never_compiles_a_change_or_an_opt_out(monkeypatch, build, reason):
+def test_compile_update_false_opts_out(monkeypatch):
     monkeypatch.setattr(TD3X, "compile_auto_min_steps", 0)
-    model = build()
+    model = small(compile_update=False)
     model.learn(20)
-    assert not model.update_compiled and not model.update_path.startswith("compiled")
-    assert reason in model.compile_reason
+    assert not model.update_compiled and model.update_path == "eager" and model.compile_reason == "compile_update=False"
 
 
 def test_auto_steps_aside_where_there_is_no_cpu_compiler(monkeypatch):
     from torch._inductor import config as inductor_config
-
-    from sb3_td3x.td3x.update_paths import compiled
 
     monkeypatch.setattr(TD3X, "compile_auto_min_steps", 0)
     compiled.why_no_cpu_compiler.cache_clear()
@@ -525,18 +279,24 @@ def test_auto_steps_aside_where_there_is_no_cpu_compiler(monkeypatch):
             model.learn(20)
     finally:
         compiled.why_no_cpu_compiler.cache_clear()
-    assert not model.update_compiled and model.update_path == "mlp"
+    assert not model.update_compiled and model.update_path == "eager"
     assert "no C++ compiler for torch.compile's CPU backend" in model.compile_reason
 
 
-def test_auto_compiles_on_a_cpu_only(monkeypatch):
-    from sb3_td3x.td3x.update_paths.compiled import why_not_compile
-
+def test_auto_asks_about_the_machine_and_the_run_only(monkeypatch):
     monkeypatch.setattr(TD3X, "compile_auto_min_steps", 0)
     model = small()
     assert why_not_compile(model) is None
     monkeypatch.setattr(model, "device", th.device("cuda"))
-    assert why_not_compile(model) == "auto compiles on a CPU only (device cuda)"
+    assert why_not_compile(model) is None  # on a GPU: compiled inside CUDA graphs
+    assert choose_update(model).reason.endswith("one graph in CUDA graphs (torch.compile's reduce-overhead)")
+    monkeypatch.setattr(model, "cuda_graph_request", False)
+    assert why_not_compile(model) == "cuda_graph=False (on a GPU, auto compiles the update inside CUDA graphs)"
+    monkeypatch.setattr(model, "device", th.device("mps"))
+    assert why_not_compile(model) == "auto compiles on a CPU or a CUDA GPU (device mps)"
+    monkeypatch.setattr(model, "device", th.device("cpu"))
+    monkeypatch.setattr(model, "bf16", True)
+    assert why_not_compile(model) == "bf16=True (compiled bf16 products are not measured to win)"
 
 
 def test_compile_update_is_none_true_or_false():

@@ -2,10 +2,11 @@
 
 :class:`GraphedGradientStep` runs :meth:`TD3X.gradient_step` as it is (every hook as written, overridden or not), so
 it replaces no hook. A graph replays the kernels its capture launched, never the Python that launched them: what a
-hook decides in Python at the capture is frozen into it. ``cuda_graph=True`` captures the hooks as they are (the
-user vouches for them); what it requires (a CUDA device, the tensor replay buffer, capturable Adam) is checked when
-the model is built. ``cuda_graph=None``, the default, captures only where :func:`why_not_cuda_graph` proves the
-update stock and capturable.
+hook decides in Python at the capture is frozen into it, except :data:`GRAPH_SETTINGS`, whose change captures the
+graphs again. ``cuda_graph=True`` captures the hooks as they are (the user vouches for them); what it requires (a CUDA
+device, the tensor replay buffer, capturable Adam) is checked by :func:`why_not_capture`. ``cuda_graph=None``, the
+default, runs the compiled update inside CUDA graphs instead (:mod:`~sb3_td3x.td3x.update_paths.compiled`), where
+Dynamo's guards see every Python value the hooks read.
 """
 
 from __future__ import annotations
@@ -13,17 +14,12 @@ from __future__ import annotations
 import contextlib
 import warnings
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import torch as th
 
 from sb3_td3x.common.buffers import TensorReplayBuffer
 from sb3_td3x.common.torch_internals import global_optimizer_hooks, optimizer_step_hooks
-from sb3_td3x.td3x.hooks import changed_hooks
-from sb3_td3x.td3x.update_paths.mlp import MlpUpdate
-
-if TYPE_CHECKING:
-    from sb3_td3x.td3x.td3x import TD3X
 
 Infos = tuple[dict[str, th.Tensor], dict[str, th.Tensor]]
 
@@ -38,31 +34,17 @@ GRAPH_SETTINGS = (
 )  # fmt: skip
 
 
-def why_not_cuda_graph(model: TD3X, device: th.device | str | None = None) -> str | None:
-    """Why ``cuda_graph=None`` (auto) runs ``model``'s update eagerly instead of in CUDA graphs, or ``None`` where
-    it runs it in graphs: the first condition that fails, in one line.
-
-    Auto takes graphs only for an update it can prove stock and capturable, so that a user's change is never frozen
-    into a graph: a CUDA device; no ``compile_update``, ``bf16`` (bf16 autocast inside graphs is not tested on a
-    GPU) or ``mlp_update=False`` (the hooks, eagerly, with autograd: to compare or to debug); TD3X's
-    ``TensorReplayBuffer``, sampled inside the graph; no ``VecNormalize`` (it normalises the samples on the host);
-    torch's Adam or AdamW for both optimizers, without step hooks; no hook changed, and SB3's ReLU MLP actor and
-    critics as written (:meth:`MlpUpdate.why_not <sb3_td3x.td3x.update_paths.mlp.MlpUpdate.why_not>`: no overridden
-    ``forward``, no module or gradient hook).
-
-    :param model: the TD3X model, built (networks, optimizers and replay buffer)
-    :param device: the device to decide for; ``model.device`` by default (tests on a CPU pass a pretend CUDA one)
-    """
-    device = model.device if device is None else th.device(device)
-    if device.type != "cuda":
-        return "no CUDA device"
-    for switch, value in (("compile_update", True), ("bf16", True), ("mlp_update", False)):
-        if getattr(model, switch) == value:
-            return f"{switch}={value}"
+def why_not_capture(model: Any) -> str | None:
+    """Why ``cuda_graph=True`` cannot capture ``model``'s gradient step, or ``None`` where it can: a CUDA device,
+    TD3X's ``TensorReplayBuffer`` (sampled inside the graph), no ``VecNormalize`` (it normalises the samples on the
+    host), torch's Adam or AdamW for both optimizers (``capturable=True``), without step hooks (they would run once,
+    at the capture)."""
+    if model.device.type != "cuda":
+        return f"no CUDA device ({model.device})"
     if type(model.replay_buffer) is not TensorReplayBuffer:
         return (
             f"the replay buffer is a {type(model.replay_buffer).__name__}, not TD3X's TensorReplayBuffer "
-            "(Box observations, n_steps=1, replay_buffer_class=None)"
+            "(Box observations, replay_buffer_class=None)"
         )
     if model.get_vec_normalize_env() is not None:
         return "VecNormalize normalises the samples on the host"
@@ -74,9 +56,7 @@ def why_not_cuda_graph(model: TD3X, device: th.device | str | None = None) -> st
             return f"step hooks on the {role}'s optimizer (or this torch hides them)"
     if global_optimizer_hooks() is not False:
         return "global optimizer step hooks (or this torch hides them)"
-    if changed := changed_hooks(model):
-        return "; ".join(changed)
-    return MlpUpdate.why_not(model)
+    return None
 
 
 def cuda_graph_capture(fn: Callable[[], Infos], pool: Any | None) -> tuple[Callable[[], None], Infos, Any]:
@@ -104,7 +84,7 @@ class GraphedGradientStep:
 
     Requirements: a CUDA device, the tensor replay buffer (sampled on the device from bounds kept in device
     tensors), no ``VecNormalize`` (it normalises on the host), and Adam with ``capturable=True`` and its learning
-    rates in device tensors (``TD3X`` sets these up; :func:`why_not_cuda_graph` checks them all for auto).
+    rates in device tensors (``TD3X`` sets these up; :func:`why_not_capture` checks the rest).
     The warm-up steps that precede a capture are undone (parameters, optimizer states and the device's random
     generator restored), so capturing does not change what is learned: each replay computes the eager step that
     would have run in its place, with the same random draws (``tests/gpu/test_cuda.py`` checks it on a GPU).
@@ -118,7 +98,7 @@ class GraphedGradientStep:
 
     def __init__(
         self,
-        model: TD3X,
+        model: Any,
         capture: Callable[[Callable[[], Infos], Any | None], tuple[Callable[[], None], Infos, Any]] = cuda_graph_capture,
         warmup_steps: int = 3,
     ):

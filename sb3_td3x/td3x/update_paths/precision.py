@@ -1,7 +1,7 @@
 """bf16 for the update: autocast for the hooks' forward passes, and whether this CPU multiplies bf16 in hardware.
 
 ``bf16=True`` is how the update runs, not what it computes: the weights, gradients, optimizer states and losses stay
-fp32, and only the matrix products are bf16 (``MlpUpdate`` casts its operands; the hooks run under autocast).
+fp32, and only the matrix products are bf16 (the hooks' forward passes run under autocast, eagerly or compiled).
 """
 
 from __future__ import annotations

@@ -1,0 +1,166 @@
+"""Steps 12 and 13's optimizer step, written once for the eager update and the compiled one: :func:`minimize` (and
+:func:`gradients` with :func:`apply_gradients`, for a step that changes the gradients in between).
+
+Eagerly, ``minimize(optimizer, loss)`` is what SB3's TD3 does: ``zero_grad``, ``loss.backward()``, ``step()``, the
+backward pass reaching the optimizer's own parameters only (so the actor's loss leaves the critics without gradient).
+
+Inside ``torch.compile`` (:mod:`~sb3_td3x.td3x.update_paths.compiled`), the same call is written so that the forward
+pass, the backward pass and the optimizer step trace into one graph: the gradients come from
+``torch.autograd.grad`` and the parameters move by the optimizer's own update rule, torch's functional ``adam``
+(what ``torch.optim.Adam.step()`` and ``AdamW.step()`` call), on the optimizer's own state tensors. torch 2.13 cannot
+trace ``loss.backward()`` followed by ``optimizer.step()`` into one graph: the optimizer refuses a parameter whose
+gradient the same graph writes. An optimizer that cannot be stepped this way (not torch's ``Adam`` or ``AdamW``, or
+with step hooks, which ``step()`` would run: :func:`why_not_traceable`) stops the compilation with the reason, and
+the update then runs eagerly. What the graph reads of an optimizer is made ready before each call (:func:`prepare`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import torch as th
+from torch.optim.adam import adam as functional_adam
+
+from sb3_td3x.common.torch_internals import global_optimizer_hooks, optimizer_step_hooks
+
+#: The optimizers :func:`minimize` steps inside a compiled graph: torch's own classes, not subclasses (whose ``step``
+#: may do anything).
+TRACEABLE = (th.optim.Adam, th.optim.AdamW)
+
+#: The attribute where :func:`prepare` leaves, for a compiled step, an optimizer's learning rates as 0-d tensors (one
+#: per parameter group: a schedule then changes a tensor's value, not a constant of the graph, and recompiles nothing),
+#: or the reason it cannot be stepped inside a graph.
+PREPARED = "_sb3_td3x_compiled_step"
+
+
+def trainable(optimizer: th.optim.Optimizer) -> list[th.Tensor]:
+    """The parameters ``optimizer`` steps that require a gradient, in its order (frozen ones get none)."""
+    return [p for group in optimizer.param_groups for p in group["params"] if p.requires_grad]
+
+
+def minimize(optimizer: th.optim.Optimizer, loss: th.Tensor) -> None:
+    """One gradient step of ``optimizer`` on ``loss``: the gradient of ``loss`` with respect to the optimizer's
+    parameters (and no other tensor), then the optimizer's update (see the module's docstring)."""
+    if th.compiler.is_compiling():
+        apply_gradients(optimizer, gradients(optimizer, loss))
+        return
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward(inputs=trainable(optimizer))
+    optimizer.step()
+
+
+def gradients(optimizer: th.optim.Optimizer, loss: th.Tensor) -> list[th.Tensor]:
+    """The gradient of ``loss`` with respect to each of the optimizer's trainable parameters (:func:`trainable`'s
+    order), with ``torch.autograd.grad``: to change them before :func:`apply_gradients` (clipping, say) in a way that
+    compiles with the rest of the update."""
+    if th.compiler.is_compiling():
+        return list(th.autograd.grad(loss, _prepared(optimizer).params))
+    return list(th.autograd.grad(loss, trainable(optimizer)))
+
+
+def apply_gradients(optimizer: th.optim.Optimizer, grads: list[th.Tensor]) -> None:
+    """The optimizer's update with ``grads`` (one per trainable parameter, :func:`trainable`'s order): eagerly, the
+    gradients set as ``.grad`` and ``optimizer.step()``; compiled, torch's functional Adam on the optimizer's state."""
+    if not th.compiler.is_compiling():
+        params = trainable(optimizer)
+        if len(grads) != len(params):
+            raise ValueError(f"apply_gradients: {len(grads)} gradients for the optimizer's {len(params)} trainable parameters")
+        for p, g in zip(params, grads):
+            p.grad = g
+        optimizer.step()
+        return
+    step = _prepared(optimizer)
+    with th.no_grad():
+        for group in step.groups:
+            group_grads, grads = grads[: len(group.params)], grads[len(group.params) :]
+            functional_adam(
+                group.params,
+                group_grads,
+                group.exp_avgs,
+                group.exp_avg_sqs,
+                group.max_exp_avg_sqs,
+                group.steps,
+                foreach=True,
+                capturable=True,  # the learning rate is a tensor
+                lr=group.lr,
+                **group.options,
+            )
+
+
+@dataclass
+class _Group:
+    """What a compiled Adam step reads of one parameter group (:func:`prepare`): the graph reads this, never the
+    optimizer's own dictionaries, whose learning rate changes with a schedule."""
+
+    params: list[th.Tensor]
+    exp_avgs: list[th.Tensor]
+    exp_avg_sqs: list[th.Tensor]
+    max_exp_avg_sqs: list[th.Tensor]
+    steps: list[th.Tensor]
+    lr: th.Tensor  # 0-d, refreshed before each call
+    options: dict[str, Any]
+
+
+@dataclass
+class _CompiledStep:
+    params: list[th.Tensor]  # trainable(optimizer)
+    groups: list[_Group]
+
+
+def _prepared(optimizer: th.optim.Optimizer) -> _CompiledStep:
+    prepared = getattr(optimizer, PREPARED, "the optimizer was not prepared for a compiled step (sb3_td3x.td3x.optim.prepare)")
+    if isinstance(prepared, str):
+        th._dynamo.graph_break(f"sb3_td3x.td3x.optim: {prepared}")
+    return prepared
+
+
+def why_not_traceable(optimizer: th.optim.Optimizer) -> str | None:
+    """Why :func:`minimize` cannot step ``optimizer`` inside a compiled graph, or ``None`` where it can: torch's
+    ``Adam`` or ``AdamW`` (not a subclass), without step hooks, not differentiable, its state made by a first
+    ``step()``, and no gradient hook on its parameters (``register_hook``, ``register_post_accumulate_grad_hook``:
+    a graph differentiating with ``torch.autograd.grad`` would not run them)."""
+    if type(optimizer) not in TRACEABLE:
+        return f"a {type(optimizer).__name__} optimizer steps only eagerly (compiled: torch's Adam and AdamW)"
+    if optimizer_step_hooks(optimizer) is not False or global_optimizer_hooks() is not False:
+        return "an optimizer step hook runs only with an eager step()"
+    if any(group.get("differentiable") for group in optimizer.param_groups):
+        return "a differentiable optimizer steps only eagerly"
+    if not has_state(optimizer):
+        return "the optimizer has not taken its first step (its state is made eagerly)"
+    if hooked := [p for p in trainable(optimizer) if p._backward_hooks or getattr(p, "_post_accumulate_grad_hooks", None)]:
+        return f"a gradient hook on a parameter (shape {tuple(hooked[0].shape)}) runs only in an eager backward pass"
+    return None
+
+
+def prepare(optimizer: th.optim.Optimizer) -> None:
+    """Make ready, eagerly, what a compiled :func:`minimize` of ``optimizer`` reads (:data:`PREPARED`): its trainable
+    parameters and state tensors, its options, its learning rates as 0-d tensors (refreshed at each call), or the
+    reason it cannot be stepped inside a graph."""
+    why = why_not_traceable(optimizer)
+    if why is not None:
+        optimizer.__dict__[PREPARED] = why
+        return
+    old = optimizer.__dict__.get(PREPARED)
+    groups = []
+    for k, group in enumerate(optimizer.param_groups):
+        params = [p for p in group["params"] if p.requires_grad]
+        states = [optimizer.state[p] for p in params]
+        lr = old.groups[k].lr if isinstance(old, _CompiledStep) and k < len(old.groups) else th.zeros((), device=params[0].device)
+        lr.fill_(float(group["lr"]))
+        beta1, beta2 = group["betas"]
+        options = {
+            "beta1": beta1, "beta2": beta2, "eps": group["eps"], "weight_decay": group["weight_decay"],
+            "amsgrad": group["amsgrad"], "maximize": group["maximize"],
+            "decoupled_weight_decay": bool(group.get("decoupled_weight_decay", isinstance(optimizer, th.optim.AdamW))),
+        }  # fmt: skip
+        groups.append(_Group(
+            params, [st["exp_avg"] for st in states], [st["exp_avg_sq"] for st in states],
+            [st["max_exp_avg_sq"] for st in states] if group["amsgrad"] else [], [st["step"] for st in states], lr, options,
+        ))  # fmt: skip
+    optimizer.__dict__[PREPARED] = _CompiledStep([p for g in groups for p in g.params], groups)
+
+
+def has_state(optimizer: th.optim.Optimizer) -> bool:
+    """Whether every trainable parameter of ``optimizer`` has its state (made by the first ``step()``)."""
+    return all(optimizer.state.get(p) for p in trainable(optimizer))
