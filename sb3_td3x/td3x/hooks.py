@@ -2,28 +2,45 @@
 
 Each step of TD3 (numbered as in the course notes, ``shared/seeds``) is a method of :class:`~sb3_td3x.TD3X`. This
 module names them once. The ways of *running* the update (``update_paths``) declare which of these hooks they
-replace with code of their own, and :func:`changed_hooks` tells them whether the user changed any of those.
-The ``TD3X`` docstring table and ``docs/extending.md`` are checked against this list by ``tests/unit/test_docs.py``.
+replace with code of their own, and :func:`changed_hooks` tells them whether the user changed any of those, or any
+hook that those call (a way of running that replaces ``update_from_batch`` must also run ``update_priorities``,
+which the stock ``update_from_batch`` calls). The ``TD3X`` docstring table and ``docs/extending.md`` are checked
+against this list by ``tests/unit/test_docs.py``.
 
 Nothing here imports ``TD3X`` (the fast paths import this module, and ``td3x.py`` imports them).
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
 
 @dataclass(frozen=True)
 class Hook:
-    """A step of TD3 as a method of ``TD3X``: its name, its step number(s), and what it computes."""
+    """A step of TD3 as a method of ``TD3X``: its name, its step number(s), and what it computes.
+
+    ``called_by`` names the hooks whose stock code calls this one: a way of running the update that replaces one of
+    them must also run this hook where it is changed, or where ``works_for(model)`` says the stock hook does work for
+    that model (a hook that does nothing by default, e.g. ``update_priorities`` without a prioritised buffer).
+    """
 
     name: str
     step: str
     what: str
+    called_by: tuple[str, ...] = ()
+    works_for: Callable[[Any], str | None] | None = None
+
+
+def _prioritized_buffer(model: Any) -> str | None:
+    """Why the stock ``update_priorities`` does work for ``model``: a replay buffer that samples by priority."""
+    return "the replay buffer samples by priority" if getattr(getattr(model, "replay_buffer", None), "prioritized", False) else None
 
 
 HOOKS: tuple[Hook, ...] = (
+    Hook("actor_network", "2", "the actor's network pi_phi (and its target's)"),
+    Hook("q_network", "3", "each critic's network Q_theta_i (and its target's)"),
     Hook("sample_batch", "4", "sample a batch (s, a, r, s', d)"),
     Hook("target_actions", "5-6", "a' = clip(pi_phi'(s') + eps, -1, 1)"),
     Hook("target_policy_smoothing_noise", "6", "eps = clip(N(0, sigma~), -c, c)"),
@@ -33,6 +50,10 @@ HOOKS: tuple[Hook, ...] = (
     Hook("current_q_values", "10", "Q_i(s, a) for each critic"),
     Hook("critic_loss", "11", "L = sum_i MSE(Q_i(s, a), y)"),
     Hook("optimize_critic", "12", "gradient step on the critics"),
+    Hook(
+        "update_priorities", "12", "then: the batch's new priorities (prioritised replay)",
+        called_by=("update_from_batch", "gradient_step"), works_for=_prioritized_buffer,
+    ),  # fmt: skip
     Hook("should_update_actor", "13", "update the actor and the targets this step?"),
     Hook("actor_loss", "13", "J = -Q_1(s, pi(s))"),
     Hook("optimize_actor", "13", "gradient step on the actor"),
@@ -63,19 +84,31 @@ def defining_class(cls: type, name: str) -> type | None:
 
 
 def changed_hooks(model: Any, names: tuple[str, ...] | list[str] = HOOK_NAMES) -> list[str]:
-    """Each of ``names`` that would not run ``TD3X``'s own code on ``model``, with how it was changed.
+    """Each of ``names`` that would not run ``TD3X``'s own code on ``model``, with how it was changed; and each hook
+    that the stock code of one of ``names`` calls (``Hook.called_by``) where it is changed or does work for ``model``
+    (``Hook.works_for``): a way of running that replaces ``names`` would skip it.
 
     A hook is changed when a subclass overrides it (even to call ``super()``: what it adds is unknown) or when it is
     set on the instance (``model.td_target = fn``). Returns, e.g., ``["td_target overridden by MyTD3",
-    "critic_loss set on the instance"]``; empty when every hook is the stock one.
+    "critic_loss set on the instance", "update_from_batch calls update_priorities: the replay buffer samples by
+    priority"]``; empty when every hook is the stock one and none of those it calls does anything.
     """
     reference = reference_class(model)
-    changes = []
-    for name in names:
+
+    def change(name: str) -> str | None:
         if name in vars(model):
-            changes.append(f"{name} set on the instance")
-            continue
+            return f"{name} set on the instance"
         owner = defining_class(type(model), name)
         if owner is not None and owner is not reference and getattr(type(model), name) is not getattr(reference, name):
-            changes.append(f"{name} overridden by {owner.__name__}")
-    return changes
+            return f"{name} overridden by {owner.__name__}"
+        return None
+
+    changes = [found for name in names if (found := change(name)) is not None]
+    for hook in HOOKS:
+        callers = [name for name in names if name in hook.called_by]
+        if not callers or hook.name in names:
+            continue
+        found = change(hook.name) or (hook.works_for(model) if hook.works_for is not None else None)
+        if found is not None:
+            changes.append(f"{callers[0]} calls {hook.name}: {found}")
+    return list(dict.fromkeys(changes))

@@ -133,9 +133,38 @@ def test_every_fast_path_declares_what_it_replaces_among_the_hooks():
 
     for path in (MlpUpdate, FunctionalCompiledUpdate, DirectMlpActor):
         assert set(path.replaces) <= set(HOOK_NAMES), path
-    # MlpUpdate writes out every hook of steps 5 to 13; the ones it calls are the model's own.
+    # MlpUpdate writes out every hook of steps 5 to 13; the ones it calls are the model's own. The networks of steps 2
+    # and 3 it checks by their structure (requirements.stock_mlp_*), and update_priorities, which the stock
+    # update_from_batch calls, counts as a change of the hooks it replaces wherever it does something
+    # (test_a_hook_called_by_a_replaced_one_counts_where_changed_or_at_work).
     assert set(HOOK_NAMES) - set(MlpUpdate.replaces) == {
-        "sample_batch", "should_update_actor", "update_actor_target", "update_critic_target"}
+        "sample_batch", "should_update_actor", "update_actor_target", "update_critic_target",
+        "actor_network", "q_network", "update_priorities"}  # fmt: skip
+
+
+def test_a_hook_called_by_a_replaced_one_counts_where_changed_or_at_work():
+    from sb3_td3x.td3x.update_paths.mlp import MlpUpdate
+
+    class OwnPriorities(TD3X):
+        def update_priorities(self, batch, current_q, target_q):
+            pass
+
+    def model(cls=TD3X, **kwargs):
+        return cls("MlpPolicy", "Pendulum-v1", policy_kwargs={"net_arch": [8]}, **kwargs)
+
+    assert changed_hooks(model(), MlpUpdate.replaces) == []
+    assert MlpUpdate.why_not(model()) is None
+    # Stock, but at work: a prioritised buffer's priorities are written by it.
+    prioritized = model(replay_buffer_kwargs={"alpha": 0.6})
+    assert changed_hooks(prioritized, ("update_from_batch",)) == [
+        "update_from_batch calls update_priorities: the replay buffer samples by priority"]
+    assert "update_priorities" in MlpUpdate.why_not(prioritized)
+    # Changed: an override counts, whatever the buffer; asked for by name, it is reported as itself.
+    own = model(OwnPriorities)
+    assert changed_hooks(own, ("gradient_step", "update_from_batch")) == [
+        "gradient_step calls update_priorities: update_priorities overridden by OwnPriorities"]
+    assert changed_hooks(own, ("update_priorities",)) == ["update_priorities overridden by OwnPriorities"]
+    assert changed_hooks(own, ("td_target",)) == []
 
 
 def _module_imports(path: Path) -> set[str]:
@@ -237,7 +266,8 @@ def small_then(change):
         (lambda: small(compile_update=True), "compile_update=True"),
         (lambda: small(bf16=True), "bf16=True"),
         (lambda: small(mlp_update=False), "mlp_update=False"),
-        (lambda: small(n_steps=3), "the replay buffer is a NStepReplayBuffer, not TD3X's TensorReplayBuffer"),
+        (lambda: small(n_steps=3), None),  # the tensor buffer's n-step returns, sampled inside the graph
+        (lambda: small(replay_buffer_kwargs={"alpha": 0.6}), "calls update_priorities: the replay buffer samples by priority"),
         (lambda: small(replay_buffer_class=ReplayBuffer), "the replay buffer is a ReplayBuffer, not"),
         (lambda: TD3X("MultiInputPolicy", DictObservation(gym.make("Pendulum-v1")), policy_kwargs={"net_arch": [16]}),
          "the replay buffer is a DictReplayBuffer, not"),
@@ -259,7 +289,7 @@ def small_then(change):
          "a forward hook on policy.critic.qf0"),
         (small_then(lambda m: m.actor.mu[0].weight.register_hook(lambda grad: grad)), "a gradient hook on actor.mu.0.weight"),
     ],
-    ids=["stock", "adamw", "compile_update", "bf16", "mlp_update_false", "n_steps", "sb3_buffer", "dict_obs",
+    ids=["stock", "adamw", "compile_update", "bf16", "mlp_update_false", "n_steps", "prioritized", "sb3_buffer", "dict_obs",
          "vec_normalize", "sgd", "optimizer_hook", "subclass_hook", "sample_batch", "instance_hook", "wrapped_critic",
          "subclassed_critic", "tanh", "module_hook", "gradient_hook"],
 )
