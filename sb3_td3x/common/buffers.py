@@ -440,7 +440,7 @@ class TensorReplayBuffer(ReplayBuffer):
     ) -> TensorReplayBufferSamples:
         """The n-step transitions starting at ``rows``: SB3's ``NStepReplayBuffer._get_samples`` (SB3 2.7) in tensor
         operations, with the same arithmetic in the same order (float32, the powers of gamma computed as SB3 computes
-        them)."""
+        them): the same bits as SB3's for ``n_steps < 8`` (numpy sums 8 terms or more pairwise: to float rounding)."""
         n = self.n_steps
         steps = th.arange(n, device=self._device)
         sequence = (batch_inds.unsqueeze(1) + steps) % self.buffer_size  # (batch, n): positions, wrapping around
@@ -456,7 +456,10 @@ class TensorReplayBuffer(ReplayBuffer):
         kept = (stop_count - stop.to(th.int32)) == 0  # (batch, n): the steps up to and including the first stop
         n_kept = kept.sum(1)  # (batch,), in [1, n]
         powers = self._discount_powers()  # (n + 1,): gamma ** k
-        n_step_returns = (rewards * powers[:n] * kept).sum(1, keepdim=True)  # (batch, 1)
+        terms = rewards * powers[:n] * kept  # (batch, n)
+        n_step_returns = terms[:, :1]  # (batch, 1): summed in order, as numpy sums fewer than 8 terms (the same bits)
+        for k in range(1, n):
+            n_step_returns = n_step_returns + terms[:, k : k + 1]
         discounts = powers[n_kept].unsqueeze(1)  # (batch, 1): gamma ** (steps summed)
         last = (batch_inds + n_kept - 1) % self.buffer_size
         last_rows = last if env_inds is None else last * self.n_envs + env_inds
