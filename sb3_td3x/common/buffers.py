@@ -140,7 +140,8 @@ class TensorReplayBuffer(ReplayBuffer):
             fail(f"n_steps={n_steps!r} must be an integer >= 1 (1: one-step returns)")
         if n_steps > 1 and optimize_memory_usage:
             fail(
-                "n-step returns (n_steps > 1) need the next observations: pass optimize_memory_usage=False (as SB3's NStepReplayBuffer)"
+                "n-step returns (n_steps > 1) need the next observations: pass optimize_memory_usage=False "
+                "(as SB3's NStepReplayBuffer)"
             )
         if not 0.0 <= gamma <= 1.0:
             fail(f"gamma={gamma!r} must be in [0, 1]")
@@ -148,7 +149,8 @@ class TensorReplayBuffer(ReplayBuffer):
             return
         if optimize_memory_usage:
             fail(
-                "prioritised sampling (alpha) needs optimize_memory_usage=False: the newest row's transition is not stored whole"
+                "prioritised sampling (alpha) needs optimize_memory_usage=False: the newest row's transition is not "
+                "stored whole"
             )
         if not (np.isfinite(alpha) and alpha >= 0):
             fail(f"alpha={alpha!r} must be a finite float >= 0 (None: uniform sampling)")

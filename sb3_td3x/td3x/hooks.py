@@ -35,7 +35,8 @@ class Hook:
 
 def _prioritized_buffer(model: Any) -> str | None:
     """Why the stock ``update_priorities`` does work for ``model``: a replay buffer that samples by priority."""
-    return "the replay buffer samples by priority" if getattr(getattr(model, "replay_buffer", None), "prioritized", False) else None
+    prioritized = getattr(getattr(model, "replay_buffer", None), "prioritized", False)
+    return "the replay buffer samples by priority" if prioritized else None
 
 
 HOOKS: tuple[Hook, ...] = (
@@ -51,9 +52,12 @@ HOOKS: tuple[Hook, ...] = (
     Hook("critic_loss", "11", "L = sum_i MSE(Q_i(s, a), y)"),
     Hook("optimize_critic", "12", "gradient step on the critics"),
     Hook(
-        "update_priorities", "12", "then: the batch's new priorities (prioritised replay)",
-        called_by=("update_from_batch", "gradient_step"), works_for=_prioritized_buffer,
-    ),  # fmt: skip
+        "update_priorities",
+        "12",
+        "then: the batch's new priorities (prioritised replay)",
+        called_by=("update_from_batch", "gradient_step"),
+        works_for=_prioritized_buffer,
+    ),
     Hook("should_update_actor", "13", "update the actor and the targets this step?"),
     Hook("actor_loss", "13", "J = -Q_1(s, pi(s))"),
     Hook("optimize_actor", "13", "gradient step on the actor"),

@@ -15,7 +15,9 @@ from stable_baselines3.td3.policies import Actor, TD3Policy
 
 #: The network builders of the algorithm that is building a policy now, by role (``"actor"``: TD3X's
 #: ``actor_network`` hook, ``"critic"``: its ``q_network``), where a subclass overrides them (:func:`networks_built_by`).
-_network_builders: ContextVar[dict[str, Callable[..., th.nn.Module]] | None] = ContextVar("td3x_network_builders", default=None)
+_network_builders: ContextVar[dict[str, Callable[..., th.nn.Module]] | None] = ContextVar(
+    "td3x_network_builders", default=None
+)
 
 
 @contextlib.contextmanager

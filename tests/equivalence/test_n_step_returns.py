@@ -54,7 +54,8 @@ def test_the_same_n_step_batches_as_sb3_for_every_start(n_steps, steps, n_envs, 
         got = buffer._get_samples(starts)
         for name in FIELDS:
             exact = name != "rewards" or n_steps < 8
-            th.testing.assert_close(getattr(got, name), getattr(expected, name), **({"rtol": 0, "atol": 0} if exact else {}), msg=name)
+            tolerance = {"rtol": 0, "atol": 0} if exact else {}
+            th.testing.assert_close(getattr(got, name), getattr(expected, name), **tolerance, msg=name)
         cut_short += int((expected.discounts > 0.9**n_steps + 1e-6).sum())  # fewer steps summed
     assert cut_short > 10, "no sequence ended early: the test would not see how endings are handled"
 
@@ -79,8 +80,8 @@ def test_the_n_step_target_is_the_hand_written_return():
     buffer = TensorReplayBuffer(20, OBS, ACT, device="cpu", n_steps=3, gamma=0.5)
     rewards, ends = [1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0], [None, None, None, None, "terminated", None, "truncated"]
     for t, (reward, end) in enumerate(zip(rewards, ends)):
-        buffer.add(np.full((1, 4), t), np.full((1, 4), t + 1), np.zeros((1, 2)), np.array([reward]), np.array([end is not None]),
-                   [{"TimeLimit.truncated": end == "truncated"}])  # fmt: skip
+        done, infos = np.array([end is not None]), [{"TimeLimit.truncated": end == "truncated"}]
+        buffer.add(np.full((1, 4), t), np.full((1, 4), t + 1), np.zeros((1, 2)), np.array([reward]), done, infos)
     batch = buffer._get_samples(th.tensor([0, 2, 3, 5]))
     th.testing.assert_close(batch.rewards.squeeze(1), th.tensor([1 + 1 + 1.0, 4 + 4 + 4.0, 8 + 8.0, 32 + 32.0]))
     th.testing.assert_close(batch.discounts.squeeze(1), th.tensor([0.125, 0.125, 0.25, 0.25]))

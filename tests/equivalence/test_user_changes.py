@@ -233,7 +233,10 @@ CASES: dict[str, Case] = {
     # Prioritised replay with the stock hooks: update_from_batch's update_priorities writes the priorities.
     "prioritized-replay-buffer": Case(kwargs={"replay_buffer_kwargs": {"alpha": 0.6}}),
     "prioritized-with-importance-weights": Case(kwargs={"replay_buffer_kwargs": {"alpha": 0.6, "beta": 0.4}}),
-    **{f"{hook}-overridden": Case(cls=_subclass_overriding(hook), kwargs=HOOK_CASE_KWARGS.get(hook, {})) for hook in HOOK_NAMES},
+    **{
+        f"{hook}-overridden": Case(cls=_subclass_overriding(hook), kwargs=HOOK_CASE_KWARGS.get(hook, {}))
+        for hook in HOOK_NAMES
+    },
 }
 
 # Stock set-ups the fast paths must keep computing as the hooks do (no change: compared, not required to differ).
