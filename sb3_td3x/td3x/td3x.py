@@ -14,7 +14,7 @@ import numpy as np
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.base_class import maybe_make_env
-from stable_baselines3.common.buffers import ReplayBuffer
+from stable_baselines3.common.buffers import NStepReplayBuffer, ReplayBuffer
 from stable_baselines3.common.noise import ActionNoise, NormalActionNoise
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
@@ -380,10 +380,11 @@ class TD3X(OffPolicyAlgorithm):
         builders = {role: getattr(self, hook) for role, hook in (("actor", "actor_network"), ("critic", "q_network"))
                     if changed_hooks(self, (hook,))}  # fmt: skip
         buffer_class = self.replay_buffer_class
-        takes_n_steps = isinstance(buffer_class, type) and issubclass(buffer_class, TensorReplayBuffer)
+        takes_n_steps = isinstance(buffer_class, type) and issubclass(buffer_class, (TensorReplayBuffer, NStepReplayBuffer))
         with networks_built_by(builders), warnings.catch_warnings():
             if takes_n_steps and self.replay_buffer_kwargs.get("n_steps") == self.n_steps:
-                # SB3 warns that a replay_buffer_class of one's own ignores n_steps: this one takes it.
+                # SB3 warns that a replay_buffer_class of one's own ignores n_steps: this one takes it (and a model saved
+                # with SB3's NStepReplayBuffer, loaded, has it as its class).
                 warnings.filterwarnings("ignore", message=r"`n_steps=\d+` is ignored because a custom `replay_buffer_class`")
             super()._setup_model()
         # The generators TD3X's own code draws from: the global ones, as SB3's, until a SeedBatch detaches them.

@@ -74,6 +74,31 @@ def test_a_seeded_sample_is_sb3s(n_envs):
         th.testing.assert_close(getattr(got, name), getattr(expected, name), rtol=0, atol=0, msg=name)
 
 
+class ScalingNormalizer:
+    """What the buffers ask of a VecNormalize: its observation and reward normalisation (here affine maps)."""
+
+    def normalize_obs(self, obs):
+        return (obs - 0.5) * 2.0
+
+    def normalize_reward(self, reward):
+        return reward * 0.1
+
+
+def test_n_step_batches_with_vec_normalize_are_sb3s():
+    """Each reward of the sequence normalised before it is discounted, the observations normalised: as SB3 does."""
+    kwargs = dict(n_envs=2, n_steps=3, gamma=0.99)
+    reference = NStepReplayBuffer(60, OBS, ACT, device="cpu", **kwargs)
+    buffer = TensorReplayBuffer(60, OBS, ACT, device="cpu", **kwargs)
+    fill([reference, buffer], 45, 2)
+    starts = np.arange(reference.size())
+    np.random.seed(0)
+    expected = reference._get_samples(starts, env=ScalingNormalizer())
+    np.random.seed(0)
+    got = buffer._get_samples(starts, env=ScalingNormalizer())
+    for name in FIELDS:
+        th.testing.assert_close(getattr(got, name), getattr(expected, name).float(), msg=name)
+
+
 def test_the_n_step_target_is_the_hand_written_return():
     """One sequence by hand: r0 + g r1 + g^2 r2, bootstrapped with g^3 at s3; cut at a termination (no bootstrap) and
     at a truncation (bootstrapped with g^2 at the truncation's next observation)."""
