@@ -146,6 +146,11 @@ class TensorReplayBuffer(ReplayBuffer):
         if not 0.0 <= gamma <= 1.0:
             fail(f"gamma={gamma!r} must be in [0, 1]")
         if alpha is None:
+            if beta != 0.0 or min_priority != 1e-6 or max_priority_reset_interval != 0:
+                fail(
+                    "beta, min_priority and max_priority_reset_interval are options of prioritised sampling, which "
+                    "samples uniformly without alpha: pass alpha (e.g. 0.6) too"
+                )
             return
         if optimize_memory_usage:
             fail(

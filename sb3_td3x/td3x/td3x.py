@@ -426,7 +426,8 @@ class TD3X(OffPolicyAlgorithm):
 
     def _setup_learn(self, *args: Any, **kwargs: Any) -> tuple[int, Any]:
         """SB3's, after checking that the critic loss takes the importance weights the replay buffer samples."""
-        if getattr(self.replay_buffer, "beta", 0) and "weights" not in inspect.signature(self.critic_loss).parameters:
+        weighted = getattr(self.replay_buffer, "prioritized", False) and getattr(self.replay_buffer, "beta", 0)
+        if weighted and "weights" not in inspect.signature(self.critic_loss).parameters:
             raise ValueError(
                 f"The replay buffer samples importance weights (beta={self.replay_buffer.beta}), but the critic_loss of "
                 f"{type(self).__name__} takes no `weights`: add a `weights=None` argument (shape (batch_size, 1)) and "

@@ -272,6 +272,7 @@ def test_prioritised_buffer_options_are_checked():
         ({"alpha": 0.6, "max_priority_reset_interval": -1}, "max_priority_reset_interval"),
         ({"alpha": 0.6, "optimize_memory_usage": True, "handle_timeout_termination": False}, "optimize_memory_usage"),
         ({"n_steps": 0}, "n_steps"),
+        ({"beta": 0.4}, "pass alpha"),  # an option of prioritised sampling, without it
         ({"n_steps": 3, "optimize_memory_usage": True, "handle_timeout_termination": False}, "optimize_memory_usage"),
     ]:
         with pytest.raises(ValueError, match=match):
