@@ -1,9 +1,10 @@
 """The hooks of TD3X: the one list of the methods that say what an update computes.
 
 Each step of TD3 (numbered as in the course notes, ``shared/seeds``) is a method of :class:`~sb3_td3x.TD3X`. This
-module names them once. The ways of *running* the update (``update_paths``) declare which of these hooks they
-replace with code of their own, and :func:`changed_hooks` tells them whether the user changed any of those.
-The ``TD3X`` docstring table and ``docs/extending.md`` are checked against this list by ``tests/unit/test_docs.py``.
+module names them once. Every way of running the update (``update_paths``) runs them as written. :func:`changed_hooks`
+says which a model changed: where the policy must build a network with a hook of the user's (steps 2 and 3), and
+where a ``gradient_step`` of the user's is compiled whole. The ``TD3X`` docstring table and ``docs/extending.md`` are
+checked against this list by ``tests/unit/test_docs.py``.
 
 Nothing here imports ``TD3X`` (the fast paths import this module, and ``td3x.py`` imports them).
 """
@@ -24,6 +25,8 @@ class Hook:
 
 
 HOOKS: tuple[Hook, ...] = (
+    Hook("actor_network", "2", "the actor's network pi_phi (and its target's)"),
+    Hook("q_network", "3", "each critic's network Q_theta_i (and its target's)"),
     Hook("sample_batch", "4", "sample a batch (s, a, r, s', d)"),
     Hook("target_actions", "5-6", "a' = clip(pi_phi'(s') + eps, -1, 1)"),
     Hook("target_policy_smoothing_noise", "6", "eps = clip(N(0, sigma~), -c, c)"),
@@ -33,6 +36,7 @@ HOOKS: tuple[Hook, ...] = (
     Hook("current_q_values", "10", "Q_i(s, a) for each critic"),
     Hook("critic_loss", "11", "L = sum_i MSE(Q_i(s, a), y)"),
     Hook("optimize_critic", "12", "gradient step on the critics"),
+    Hook("update_priorities", "12", "then: the batch's new priorities (prioritised replay)"),
     Hook("should_update_actor", "13", "update the actor and the targets this step?"),
     Hook("actor_loss", "13", "J = -Q_1(s, pi(s))"),
     Hook("optimize_actor", "13", "gradient step on the actor"),

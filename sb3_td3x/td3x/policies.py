@@ -2,12 +2,35 @@
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Callable, Iterator
+from contextvars import ContextVar
 from typing import Any
 
 import torch as th
 from stable_baselines3.common.policies import ContinuousCritic
+from stable_baselines3.common.preprocessing import get_action_dim
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor, CombinedExtractor, NatureCNN
-from stable_baselines3.td3.policies import TD3Policy
+from stable_baselines3.td3.policies import Actor, TD3Policy
+
+#: The network builders of the algorithm that is building a policy now, by role (``"actor"``: TD3X's
+#: ``actor_network`` hook, ``"critic"``: its ``q_network``), where a subclass overrides them (:func:`networks_built_by`).
+_network_builders: ContextVar[dict[str, Callable[..., th.nn.Module]] | None] = ContextVar(
+    "td3x_network_builders", default=None
+)
+
+
+@contextlib.contextmanager
+def networks_built_by(builders: dict[str, Callable[..., th.nn.Module]]) -> Iterator[None]:
+    """Policies built inside take their actor's network (``builders["actor"]``) and critics' networks
+    (``builders["critic"]``) from these functions, with the signatures of TD3X's ``actor_network`` and ``q_network``;
+    SB3's own networks for a role without one. Set by TD3X around its policy's construction; a policy loaded alone
+    (``TD3XPolicy.load``) has SB3's networks: load the model instead."""
+    token = _network_builders.set(builders)
+    try:
+        yield
+    finally:
+        _network_builders.reset(token)
 
 
 class TD3XCritic(ContinuousCritic):
@@ -40,9 +63,29 @@ class TD3XPolicy(TD3Policy):
         kwargs["optimizer_kwargs"] = optimizer_kwargs
         super().__init__(*args, **kwargs)
 
+    def make_actor(self, features_extractor: BaseFeaturesExtractor | None = None) -> Actor:
+        """SB3's actor, its network ``mu`` built by the algorithm's ``actor_network`` hook where one is set
+        (:func:`networks_built_by`)."""
+        actor = super().make_actor(features_extractor)
+        build = (_network_builders.get() or {}).get("actor")
+        if build is not None:
+            action_dim = get_action_dim(self.action_space)
+            actor.mu = build(actor.features_dim, action_dim, actor.net_arch, actor.activation_fn).to(self.device)
+        return actor
+
     def make_critic(self, features_extractor: BaseFeaturesExtractor | None = None) -> TD3XCritic:
+        """A :class:`TD3XCritic`, its networks ``qf0``, ``qf1``... built by the algorithm's ``q_network`` hook where
+        one is set (:func:`networks_built_by`)."""
         critic_kwargs = self._update_features_extractor(self.critic_kwargs, features_extractor)
-        return TD3XCritic(**critic_kwargs).to(self.device)
+        critic = TD3XCritic(**critic_kwargs).to(self.device)
+        build = (_network_builders.get() or {}).get("critic")
+        if build is not None:
+            input_dim = critic_kwargs["features_dim"] + get_action_dim(self.action_space)
+            for i in range(len(critic.q_networks)):
+                q_net = build(input_dim, critic_kwargs["net_arch"], critic_kwargs["activation_fn"]).to(self.device)
+                critic.add_module(f"qf{i}", q_net)
+                critic.q_networks[i] = q_net
+        return critic
 
     def set_training_mode(self, mode: bool) -> None:
         """Put the actor and critics in training or evaluation mode (batch norm, dropout); a no-op when already there.

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import inspect
 import math
 import warnings
 from collections.abc import Callable
@@ -12,19 +13,20 @@ import numpy as np
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.base_class import maybe_make_env
-from stable_baselines3.common.buffers import ReplayBuffer
+from stable_baselines3.common.buffers import NStepReplayBuffer, ReplayBuffer
 from stable_baselines3.common.noise import ActionNoise, NormalActionNoise
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.torch_layers import create_mlp
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, ReplayBufferSamples, Schedule, TensorDict
 from stable_baselines3.common.utils import FloatSchedule, get_parameters_by_name, update_learning_rate
 
 from sb3_td3x.common import denormals
 from sb3_td3x.common.buffers import TensorReplayBuffer
 from sb3_td3x.common.random_streams import RandomStreams
-from sb3_td3x.td3x.hooks import HOOK_NAMES
+from sb3_td3x.td3x.hooks import HOOK_NAMES, changed_hooks
 from sb3_td3x.td3x.optim import minimize
-from sb3_td3x.td3x.policies import CnnPolicy, MlpPolicy, MultiInputPolicy, TD3XPolicy
+from sb3_td3x.td3x.policies import CnnPolicy, MlpPolicy, MultiInputPolicy, TD3XPolicy, networks_built_by
 from sb3_td3x.td3x.update_paths.choose import choose_update
 from sb3_td3x.td3x.update_paths.compiled import compile_watch
 from sb3_td3x.td3x.update_paths.cuda_graph import why_not_capture
@@ -52,6 +54,8 @@ class TD3X(OffPolicyAlgorithm):
     ====  =================================================  =======================================
     step  what                                               hook
     ====  =================================================  =======================================
+    2     the actor's network pi_phi (and its target's)      :meth:`actor_network`
+    3     each critic's network Q_theta_i (and targets')     :meth:`q_network`
     4     sample a batch (s, a, r, s', d)                     :meth:`sample_batch`
     5     a' = pi_phi'(s')                                    :meth:`target_actions`
     6     a' <- clip(a' + clip(N(0, sigma~), -c, c))          :meth:`target_policy_smoothing_noise`
@@ -61,6 +65,7 @@ class TD3X(OffPolicyAlgorithm):
     10    Q_i(s, a) for each critic                           :meth:`current_q_values`
     11    L = sum_i MSE(Q_i(s, a), y)                         :meth:`critic_loss`
     12    gradient step on the critics                        :meth:`optimize_critic`
+    12    then: the batch's new priorities (prioritised)      :meth:`update_priorities`
     13    every ``policy_delay`` steps: J = -Q_1(s, pi(s))    :meth:`should_update_actor`,
                                                               :meth:`actor_loss`, :meth:`optimize_actor`
     14    phi' <- tau phi + (1 - tau) phi'  (actor target)    :meth:`update_actor_target`
@@ -71,7 +76,12 @@ class TD3X(OffPolicyAlgorithm):
     ====  =================================================  =======================================
 
     Steps 1 to 3 (replay buffer, actor and critic networks and their targets) are built by SB3's
-    ``OffPolicyAlgorithm._setup_model`` and :class:`~sb3_td3x.td3x.policies.TD3XPolicy`.
+    ``OffPolicyAlgorithm._setup_model`` and :class:`~sb3_td3x.td3x.policies.TD3XPolicy`, the networks by the hooks of
+    steps 2 and 3 where a subclass overrides them (a LayerNorm critic is one short override). The replay buffer is
+    :class:`~sb3_td3x.common.buffers.TensorReplayBuffer` for Box observations: its batches also carry their rows
+    (``indices``) and, prioritised with ``beta > 0``, importance ``weights``, which :meth:`update_from_batch` passes
+    to :meth:`critic_loss`; ``n_steps > 1`` gives it SB3's n-step returns, and ``replay_buffer_kwargs={"alpha": ...}``
+    prioritised sampling, whose priorities :meth:`update_priorities` writes after each critic step.
 
     Losses return ``(loss, info)`` and never step optimizers or touch target networks. Every constructor argument of
     SB3's :class:`~stable_baselines3.TD3` has the same name, meaning and default here; the additions are explicit
@@ -97,7 +107,8 @@ class TD3X(OffPolicyAlgorithm):
         If ``None``, it will be automatically selected.
     :param replay_buffer_kwargs: Keyword arguments to pass to the replay buffer on creation.
     :param optimize_memory_usage: Enable a memory efficient variant of the replay buffer
-    :param n_steps: n-step returns (``NStepReplayBuffer``) when ``replay_buffer_class`` is ``None``
+    :param n_steps: n-step returns when ``replay_buffer_class`` is ``None``: the tensor buffer's, the same as SB3's
+        ``NStepReplayBuffer`` (SB3's ``NStepReplayBuffer`` itself for observations it does not store)
     :param policy_delay: the actor and the target networks are updated once every ``policy_delay`` gradient steps
         (the critics at every step). ``1`` turns delayed policy updates off.
     :param target_policy_noise: Standard deviation sigma~ of the Gaussian target policy smoothing noise
@@ -314,9 +325,13 @@ class TD3X(OffPolicyAlgorithm):
         return problems
 
     def _setup_model(self) -> None:
-        if self.replay_buffer_class is None and isinstance(self.observation_space, spaces.Box) and self.n_steps == 1:
-            # Step 1: the replay buffer, kept as tensors on the training device (SB3's other buffers otherwise).
+        if self.replay_buffer_class is None and isinstance(self.observation_space, spaces.Box):
+            # Step 1: the replay buffer, kept as tensors on the training device (SB3's other buffers otherwise), with
+            # n-step returns as SB3 sets up its NStepReplayBuffer.
             self.replay_buffer_class = TensorReplayBuffer
+            if self.n_steps > 1:
+                self.replay_buffer_kwargs.update({"n_steps": self.n_steps, "gamma": self.gamma})
+        self._check_replay_buffer_options()
         request = self.cuda_graph_request
         # cuda_graph=True's graphs of their own (auto's are torch.compile's, inside the compiled update).
         self.cuda_graph = request is True and self.device.type == "cuda"
@@ -333,7 +348,18 @@ class TD3X(OffPolicyAlgorithm):
             optimizer_kwargs.pop("capturable", None)
         if optimizer_kwargs or "optimizer_kwargs" in self.policy_kwargs:
             self.policy_kwargs["optimizer_kwargs"] = optimizer_kwargs
-        super()._setup_model()
+        # Steps 2 and 3: the networks of the hooks a subclass overrides (SB3's own otherwise, so that a seeded TD3X
+        # draws SB3's initial weights).
+        builders = {role: getattr(self, hook) for role, hook in (("actor", "actor_network"), ("critic", "q_network"))
+                    if changed_hooks(self, (hook,))}  # fmt: skip
+        buffer_class = self.replay_buffer_class
+        takes_n_steps = isinstance(buffer_class, type) and issubclass(buffer_class, (TensorReplayBuffer, NStepReplayBuffer))
+        with networks_built_by(builders), warnings.catch_warnings():
+            if takes_n_steps and self.replay_buffer_kwargs.get("n_steps") == self.n_steps:
+                # SB3 warns that a replay_buffer_class of one's own ignores n_steps: this one takes it (and a model saved
+                # with SB3's NStepReplayBuffer, loaded, has it as its class).
+                warnings.filterwarnings("ignore", message=r"`n_steps=\d+` is ignored because a custom `replay_buffer_class`")
+            super()._setup_model()
         # The generators TD3X's own code draws from: the global ones, as SB3's, until a SeedBatch detaches them.
         self.random_streams = RandomStreams(self.device)
         self._link_replay_buffer_streams()
@@ -353,6 +379,29 @@ class TD3X(OffPolicyAlgorithm):
             raise ValueError(f"cuda_graph=True cannot capture this model's gradient step: {why}.")
         else:
             self._use_cuda_graph(request, f"cuda_graph={request}: gradient_step as it is, captured in CUDA graphs")
+
+    def _check_replay_buffer_options(self) -> None:
+        """Prioritised sampling and n-step returns are options of TD3X's tensor buffer: a clear error where another
+        buffer would receive them."""
+        options = sorted({"alpha", "beta", "min_priority", "max_priority_reset_interval"} & self.replay_buffer_kwargs.keys())
+        buffer_class = self.replay_buffer_class
+        if options and not (isinstance(buffer_class, type) and issubclass(buffer_class, TensorReplayBuffer)):
+            name = "SB3's choice for these observations" if buffer_class is None else buffer_class.__name__
+            raise ValueError(
+                f"replay_buffer_kwargs {options}: prioritised sampling is an option of TD3X's TensorReplayBuffer, which "
+                f"stores Box observations, but the replay buffer is {name} (observation space {self.observation_space})."
+            )
+
+    def _setup_learn(self, *args: Any, **kwargs: Any) -> tuple[int, Any]:
+        """SB3's, after checking that the critic loss takes the importance weights the replay buffer samples."""
+        weighted = getattr(self.replay_buffer, "prioritized", False) and getattr(self.replay_buffer, "beta", 0)
+        if weighted and "weights" not in inspect.signature(self.critic_loss).parameters:
+            raise ValueError(
+                f"The replay buffer samples importance weights (beta={self.replay_buffer.beta}), but the critic_loss of "
+                f"{type(self).__name__} takes no `weights`: add a `weights=None` argument (shape (batch_size, 1)) and "
+                "weigh each transition's loss by it, or set beta=0."
+            )
+        return super()._setup_learn(*args, **kwargs)
 
     def _use_cuda_graph(self, on: bool, reason: str) -> None:
         """Set the model up for gradient steps in CUDA graphs (``on``) or eager ones, and record it with ``reason``.
@@ -408,6 +457,37 @@ class TD3X(OffPolicyAlgorithm):
         self._critic_batch_norm_stats = get_parameters_by_name(self.critic, ["running_"])
         self._critic_batch_norm_stats_target = get_parameters_by_name(self.critic_target, ["running_"])
 
+    # Steps 2-3: the networks ----------------------------------------------------------------------------------
+    def actor_network(
+        self, features_dim: int, action_dim: int, net_arch: list[int], activation_fn: type[th.nn.Module]
+    ) -> th.nn.Module:
+        """Step 2: the network of the actor pi_phi (and of its target), from the features of s to an action in
+        [-1, 1]: SB3's MLP, ``Linear, activation, ..., Linear, Tanh``. The policy calls it for the actor's ``mu`` when
+        a subclass overrides it; otherwise SB3's ``Actor`` builds this very network itself (the same initial weights
+        from a seed as SB3's TD3).
+
+        :param features_dim: the width of the features extractor's output
+        :param action_dim: the number of action dimensions
+        :param net_arch: the widths of the hidden layers (``policy_kwargs["net_arch"]``, the actor's)
+        :param activation_fn: the hidden layers' activation (``policy_kwargs["activation_fn"]``)
+        :return: a module mapping (batch_size, features_dim) to (batch_size, action_dim)
+        """
+        return th.nn.Sequential(*create_mlp(features_dim, action_dim, net_arch, activation_fn, squash_output=True))
+
+    def q_network(self, input_dim: int, net_arch: list[int], activation_fn: type[th.nn.Module]) -> th.nn.Module:
+        """Step 3: the network of one critic Q_theta_i (and of its target), from the features of s joined with a to
+        the critic's output: SB3's MLP, ``Linear, activation, ..., Linear`` to one value. Called ``n_critics`` times
+        for the critics and again for their targets when a subclass overrides it; otherwise SB3's
+        ``ContinuousCritic`` builds this network itself. A LayerNorm critic is
+        ``create_mlp(..., post_linear_modules=[nn.LayerNorm])``; a distributional one returns one logit per atom.
+
+        :param input_dim: features_dim + action_dim
+        :param net_arch: the widths of the hidden layers (the critics')
+        :param activation_fn: the hidden layers' activation
+        :return: a module mapping (batch_size, input_dim) to (batch_size, 1) (or the width the other hooks expect)
+        """
+        return th.nn.Sequential(*create_mlp(input_dim, 1, net_arch, activation_fn))
+
     # ------------------------------------------------------------------------------------------------------------
     # The training loop: a short list of named steps
     # ------------------------------------------------------------------------------------------------------------
@@ -448,12 +528,21 @@ class TD3X(OffPolicyAlgorithm):
     def update_from_batch(
         self, batch: ReplayBufferSamples, update_actor: bool
     ) -> tuple[dict[str, th.Tensor], dict[str, th.Tensor]]:
-        """Steps 5 to 15 on a sampled batch: critic update, then (when ``update_actor``) actor and target updates."""
+        """Steps 5 to 15 on a sampled batch: critic update, then (when ``update_actor``) actor and target updates.
+
+        A batch with importance weights (``batch.weights``, prioritised sampling with ``beta > 0``) passes them to
+        :meth:`critic_loss` as ``weights=``; any other calls it with two arguments, as always.
+        """
         with self._autocast():
             target_q = self.compute_target_q(batch)  # steps 5-9
             current_q = self.current_q_values(batch)  # step 10
-        critic_loss, critic_info = self.critic_loss(current_q, target_q)  # step 11
+        weights = getattr(batch, "weights", None)
+        if weights is None:
+            critic_loss, critic_info = self.critic_loss(current_q, target_q)  # step 11
+        else:
+            critic_loss, critic_info = self.critic_loss(current_q, target_q, weights=weights)
         self.optimize_critic(critic_loss)  # step 12
+        self.update_priorities(batch, current_q, target_q)  # a prioritised buffer's new priorities
         if not update_actor:
             return critic_info, {}
         with self._autocast():
@@ -545,16 +634,28 @@ class TD3X(OffPolicyAlgorithm):
         """Step 10: Q_i(s, a) for every critic. Returns shape (n_critics, batch_size, 1)."""
         return self.critic.q_values(batch.observations, batch.actions)
 
-    def critic_loss(self, current_q: th.Tensor, target_q: th.Tensor) -> tuple[th.Tensor, dict[str, th.Tensor]]:
+    def q_value_estimates(self, batch: ReplayBufferSamples) -> th.Tensor:
+        """The critics' estimates of Q(s, a) as numbers, shape (n_critics, batch_size, 1): what measures of the critics
+        read (overestimation). Not a step of the update: :meth:`current_q_values` for TD3's critics; a critic whose
+        output is not the value (a distributional one: its logits) gives its expectation instead."""
+        return self.current_q_values(batch)
+
+    def critic_loss(
+        self, current_q: th.Tensor, target_q: th.Tensor, weights: th.Tensor | None = None
+    ) -> tuple[th.Tensor, dict[str, th.Tensor]]:
         """Step 11: L(theta) = sum_i MSE(Q_i(s, a), y), the sum over critics of the mean squared TD error.
 
         :param current_q: shape (n_critics, batch_size, 1)
         :param target_q: shape (batch_size, 1), no gradient
+        :param weights: importance-sampling weights of a prioritised batch, shape (batch_size, 1): each squared error
+            is weighted by its transition's. Passed only where the batch has them (``beta > 0``), so an override with
+            two arguments keeps working everywhere else
         :return: the loss and detached statistics for logging
         """
         # In fp32 also under bf16 autocast (a no-op otherwise)
         td_errors = current_q.float() - target_q.float().unsqueeze(0)  # (n_critics, batch_size, 1)
-        loss = td_errors.pow(2).mean(dim=(1, 2)).sum()
+        squared = td_errors.pow(2) if weights is None else td_errors.pow(2) * weights.float()
+        loss = squared.mean(dim=(1, 2)).sum()
         info = {"critic_loss": loss.detach(), "target_q": target_q.float().mean()}
         q_means = current_q.detach().float().mean(dim=(1, 2))  # (n_critics,)
         for i in range(current_q.shape[0]):
@@ -565,6 +666,23 @@ class TD3X(OffPolicyAlgorithm):
         """Step 12: one gradient step of the critics' optimizer on the critic loss (:func:`~sb3_td3x.td3x.optim.minimize`:
         ``zero_grad``, ``backward``, ``step``, and the same step when the update is compiled)."""
         minimize(self.critic.optimizer, loss)
+
+    @th.no_grad()
+    def update_priorities(self, batch: ReplayBufferSamples, current_q: th.Tensor, target_q: th.Tensor) -> None:
+        """After step 12, for a prioritised replay buffer: the batch's new priorities, max_i |Q_i(s, a) - y| (TD7's
+        LAP, sfujim/TD7 TD7.py lines 252 and 262), written with
+        :meth:`~sb3_td3x.common.buffers.TensorReplayBuffer.update_priorities`, which raises them to the buffer's
+        ``alpha``. Does nothing for a batch without ``indices`` or a buffer that samples uniformly.
+
+        :param batch: the batch of steps 5 to 11 (``batch.indices``: its rows in the buffer)
+        :param current_q: shape (n_critics, batch_size, 1), as given to :meth:`critic_loss`
+        :param target_q: shape (batch_size, 1)
+        """
+        indices = getattr(batch, "indices", None)
+        if indices is None or not getattr(self.replay_buffer, "prioritized", False):
+            return
+        td_errors = (current_q.detach().float() - target_q.float().unsqueeze(0)).abs()  # (n_critics, batch_size, 1)
+        self.replay_buffer.update_priorities(indices, td_errors.amax(dim=0).squeeze(1))  # type: ignore[union-attr]
 
     # Step 13 -----------------------------------------------------------------------------------------------------
     def should_update_actor(self, n_updates: int) -> bool:

@@ -12,12 +12,12 @@ import numpy as np
 import pytest
 import torch as th
 from gymnasium import spaces
-from stable_baselines3.common.buffers import NStepReplayBuffer
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.noise import NormalActionNoise, OrnsteinUhlenbeckActionNoise, VectorizedActionNoise
 
 from sb3_td3x import DDPG, TD3X
+from sb3_td3x.common.buffers import TensorReplayBuffer
 
 TINY = dict(policy_kwargs=dict(net_arch=[64, 64]), learning_starts=100, batch_size=64)
 BOX_FLOAT32 = spaces.Box(low=-1, high=1, shape=(2,), dtype=np.float32)
@@ -145,7 +145,9 @@ def test_n_step_returns():
         batch_size=64,
         gamma=gamma,
     )
-    assert isinstance(model.replay_buffer, NStepReplayBuffer)
+    # TD3X's tensor buffer computes NStepReplayBuffer's returns (tests/equivalence/test_n_step_returns.py), with its
+    # n_steps and gamma attributes.
+    assert isinstance(model.replay_buffer, TensorReplayBuffer)
     assert model.replay_buffer.n_steps == 3
     assert model.replay_buffer.gamma == gamma
     model.learn(total_timesteps=150)

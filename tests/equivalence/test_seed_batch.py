@@ -21,6 +21,7 @@ from stable_baselines3.common.noise import NormalActionNoise
 
 from sb3_td3x import TD3X, SeedBatch
 from sb3_td3x.common.random_streams import RandomStreams
+from sb3_td3x.variants import TD3C51, TD3LAP, TD3LayerNorm, TD3NStep
 
 SEEDS = (0, 1, 2)
 STEPS = 450  # 350 gradient steps after learning_starts=100
@@ -113,6 +114,24 @@ def test_a_batch_computes_the_lone_runs_bit_for_bit(cls, noise, swaps):
     assert_same_runs(batch, lone)
     # The caller's global random state is as it was.
     assert all(np.array_equal(a, b) for a, b in zip(np.random.get_state(), caller))
+
+
+@pytest.mark.parametrize(
+    ("cls", "kwargs"),
+    [(TD3LAP, {}), (TD3NStep, {}), (TD3LayerNorm, {}), (TD3C51, {"v_min": -1600.0, "v_max": 0.0})],
+    ids=["td3_lap", "td3_nstep", "td3_layernorm", "td3_c51"],
+)
+def test_a_batch_of_each_variant_computes_its_lone_runs_bit_for_bit(cls, kwargs):
+    """The variants of sb3_td3x.variants: seed i of a batch is its lone run, prioritised draws (from each seed's own
+    torch stream) and priorities included."""
+    make = factory(cls, **kwargs)
+    lone = lone_runs(make)
+    batch = SeedBatch(make, SEEDS).learn(STEPS)
+    assert_same_runs(batch, lone)
+    if cls is TD3LAP:
+        for model, alone in zip(batch, lone):
+            assert th.equal(model.replay_buffer.priorities.leaves, alone.replay_buffer.priorities.leaves)
+            assert th.equal(model.replay_buffer.max_priority, alone.replay_buffer.max_priority)
 
 
 def test_the_test_fails_when_the_math_differs():

@@ -23,7 +23,7 @@ import torch as th
 import torch.nn.functional as F
 from stable_baselines3.common.noise import NormalActionNoise
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
-from stable_baselines3.common.torch_layers import FlattenExtractor
+from stable_baselines3.common.torch_layers import FlattenExtractor, create_mlp
 from stable_baselines3.td3.policies import Actor
 from torch import nn
 
@@ -81,6 +81,17 @@ class OffsetPredictPolicy(TD3XPolicy):
 
 def _subclass_overriding(hook: str) -> type[TD3X]:
     """A TD3X subclass that overrides ``hook`` with a different step (each changes what is learned)."""
+
+    def actor_network(self, features_dim, action_dim, net_arch, activation_fn):
+        layers = create_mlp(features_dim, action_dim, net_arch, activation_fn, squash_output=True,
+                            post_linear_modules=[nn.LayerNorm])  # fmt: skip
+        return nn.Sequential(*layers)
+
+    def q_network(self, input_dim, net_arch, activation_fn):
+        return nn.Sequential(*create_mlp(input_dim, 1, net_arch, nn.ELU))
+
+    def update_priorities(self, batch, current_q, target_q):  # the first critic's squared TD error
+        self.replay_buffer.update_priorities(batch.indices, (current_q[0].detach() - target_q).pow(2).squeeze(1))
 
     def sample_batch(self, batch_size):
         batch = TD3X.sample_batch(self, batch_size)
@@ -244,6 +255,9 @@ def _remove_global_hooks() -> None:
         _global_hooks.pop().remove()
 
 
+# What an override needs to do something: update_priorities writes into a prioritised buffer only.
+HOOK_CASE_KWARGS: dict[str, dict[str, Any]] = {"update_priorities": {"replay_buffer_kwargs": {"alpha": 0.6}}}
+
 CASES: dict[str, Case] = {
     "critic-forward-subclass": Case(kwargs={"policy": ScaledCriticPolicy}),
     "critic-q1_forward-subclass": Case(kwargs={"policy": Q1ChangedPolicy}),
@@ -263,7 +277,13 @@ CASES: dict[str, Case] = {
     "frozen-actor-layer": Case(after=_frozen_actor_layer),
     "weight-norm-parametrization": Case(after=_weight_norm_on_critic),
     "policy-_predict-overridden": Case(kwargs={"policy": OffsetPredictPolicy}),
-    **{f"{hook}-overridden": Case(cls=_subclass_overriding(hook)) for hook in HOOK_NAMES},
+    # Prioritised replay with the stock hooks: update_from_batch's update_priorities writes the priorities.
+    "prioritized-replay-buffer": Case(kwargs={"replay_buffer_kwargs": {"alpha": 0.6}}),
+    "prioritized-with-importance-weights": Case(kwargs={"replay_buffer_kwargs": {"alpha": 0.6, "beta": 0.4}}),
+    **{
+        f"{hook}-overridden": Case(cls=_subclass_overriding(hook), kwargs=HOOK_CASE_KWARGS.get(hook, {}))
+        for hook in HOOK_NAMES
+    },
 }
 
 # Stock set-ups the fast paths must keep computing as the hooks do (no change: compared, not required to differ).
@@ -272,6 +292,7 @@ STOCK: dict[str, Case] = {
     "stock-shared-features-extractor-3-critics": Case(
         kwargs={"policy_kwargs": {"share_features_extractor": True, "n_critics": 3}}
     ),
+    "stock-n-step-returns": Case(kwargs={"n_steps": 3}),  # the tensor buffer's batches carry gamma ** m
 }
 
 

@@ -21,7 +21,12 @@ from sb3_td3x.experiment.envs import make_eval_env, make_train_env
 from sb3_td3x.experiment.errors import ConfigError
 from sb3_td3x.experiment.loggers import build_logger, wandb_mode
 from sb3_td3x.common.redaction import MASK
+from sb3_td3x.variants import TD3C51, TD3LAP, TD3LayerNorm, TD3NStep
 from sb3_td3x.experiment.schemas import AlgoConfig, CONF_DIR, check_config, compose_config, constructor_fields, public_config
+
+
+# The variants of sb3_td3x.variants, each with its config (docs/variants.md).
+VARIANTS = {"td3_lap": TD3LAP, "td3_nstep": TD3NStep, "td3_layernorm": TD3LayerNorm, "td3_c51": TD3C51}
 
 
 def options(group: str) -> list[str]:
@@ -29,7 +34,7 @@ def options(group: str) -> list[str]:
 
 
 def test_the_groups_hold_what_the_issue_asks_for():
-    assert set(options("algo")) >= {"td3", "ddpg", "td3_no_smoothing", "td3_no_cdq", "td3_no_delay"}
+    assert set(options("algo")) >= {"td3", "ddpg", "td3_no_smoothing", "td3_no_cdq", "td3_no_delay", *VARIANTS}
     assert set(options("env")) >= {
         "ant", "halfcheetah", "hopper", "walker2d", "humanoid", "inverted_pendulum", "inverted_double_pendulum", "reacher",
         "pendulum",
@@ -51,13 +56,13 @@ def test_every_algo_config_builds_its_algorithm(name):
     check_config(cfg)
     env = make_train_env(cfg.env, n_envs=1, seed=0)
     model = build_algorithm(cfg, env)
-    assert type(model) is {"ddpg": DDPG, "sb3_td3": TD3}.get(name, TD3X)
+    assert type(model) is {"ddpg": DDPG, "sb3_td3": TD3, **VARIANTS}.get(name, TD3X)
     assert model.policy_delay == cfg.algo.policy_delay and model.tau == cfg.algo.tau and model.gamma == cfg.algo.gamma
     assert model.batch_size == cfg.algo.batch_size and model.target_policy_noise == cfg.algo.target_policy_noise
     if name != "sb3_td3":  # SB3's TD3 has neither switch; its config keeps TD3X's defaults (tested below)
         assert model.target_policy_smoothing == cfg.algo.target_policy_smoothing
         assert model.clipped_double_q == cfg.algo.clipped_double_q
-    assert len(model.critic.q_networks) == cfg.algo.n_critics
+    assert len(model.critic.q_networks) == cfg.algo.n_critics and model.n_steps == cfg.algo.n_steps
     assert model.learning_starts == cfg.env.learning_starts
     np.testing.assert_allclose(model.action_noise._sigma, cfg.algo.exploration_noise)
     widths = [layer.out_features for layer in model.actor.mu if hasattr(layer, "out_features")]

@@ -180,6 +180,14 @@ def test_api_reference_td3x_step_table_links_every_hook(site: Path):
     assert not missing, f"the step table does not link {missing}"
 
 
+def test_the_extending_page_links_every_hook():
+    """docs/extending.md says what to override for what: every hook of the one list (sb3_td3x.td3x.hooks) is linked
+    there, so that a hook added to the list is added to the page too."""
+    text = (DOCS / "extending.md").read_text(encoding="utf-8")
+    missing = [hook for hook in HOOKS if f"[sb3_td3x.TD3X.{hook}]" not in text]
+    assert not missing, f"docs/extending.md does not link {missing}"
+
+
 def _local_target(site: Path, page: Path, url: str) -> tuple[Path, str] | None:
     """The file and fragment a relative URL of ``page`` points to; None for external or special URLs."""
     parts = urlsplit(url)

@@ -1,0 +1,140 @@
+"""What a user's change, and each variant of ``sb3_td3x.variants``, costs against the stock TD3X: one process, chunks
+alternated A B C ... A B C, every model the default of a long run (``compile_update=None`` compiles the hooks as
+written on a CPU, whatever they are).
+
+    python benchmarks/user_changes.py                                   # Hopper-v5, batch 100, 2 threads
+    python benchmarks/user_changes.py --cases stock huber td3_lap td3_c51 --chunks 8
+    python benchmarks/user_changes.py --json docs/assets/user_changes.json
+
+The cases:
+
+- ``stock``: ``TD3X`` as it is;
+- ``huber``: the README's Huber ``critic_loss``;
+- ``noise``: ``target_policy_smoothing_noise`` overridden (a uniform noise in place of the Gaussian one);
+- ``layernorm_policy``: LayerNorm critics through a policy subclass (``make_critic``), as before the network hooks;
+- ``td3_lap``, ``td3_nstep``, ``td3_layernorm``, ``td3_c51``: the variants.
+
+Prints each case's end-to-end steps/s (collection and training), its cores used, its update path, and the median of
+its per-chunk ratios to ``stock``. Not part of the test suite; needs a quiet machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import statistics
+import time
+
+import torch as th
+import torch.nn.functional as F
+from stable_baselines3.common.torch_layers import create_mlp
+from throughput import make_model
+
+from sb3_td3x import TD3X
+from sb3_td3x.td3x.policies import TD3XCritic, TD3XPolicy
+from sb3_td3x.variants import TD3C51, TD3LAP, TD3LayerNorm, TD3NStep
+
+
+class HuberTD3(TD3X):
+    """The README's example."""
+
+    def critic_loss(self, current_q, target_q):  # current_q: (n_critics, batch, 1)
+        loss = sum(F.smooth_l1_loss(q, target_q) for q in current_q)
+        return loss, {"critic_loss": loss.detach()}
+
+
+class UniformNoiseTD3(TD3X):
+    """Step 6 with a uniform noise of the same spread, clipped as TD3's."""
+
+    def target_policy_smoothing_noise(self, actions):
+        noise = (th.rand_like(actions) * 2 - 1) * self.target_policy_noise * 3**0.5
+        return noise.clamp(-self.target_noise_clip, self.target_noise_clip)
+
+
+class LayerNormCritic(TD3XCritic):
+    """SB3's critic with a LayerNorm after each hidden layer, built the way a user did before the network hooks."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        for i in range(len(self.q_networks)):
+            first = self.q_networks[i][0]
+            widths = [m.out_features for m in self.q_networks[i] if isinstance(m, th.nn.Linear)][:-1]
+            net = th.nn.Sequential(*create_mlp(first.in_features, 1, widths, th.nn.ReLU, post_linear_modules=[th.nn.LayerNorm]))
+            self.add_module(f"qf{i}", net)
+            self.q_networks[i] = net
+
+
+class LayerNormPolicy(TD3XPolicy):
+    def make_critic(self, features_extractor=None):
+        critic_kwargs = self._update_features_extractor(self.critic_kwargs, features_extractor)
+        return LayerNormCritic(**critic_kwargs).to(self.device)
+
+
+CASES = {
+    "stock": (TD3X, {}),
+    "huber": (HuberTD3, {}),
+    "noise": (UniformNoiseTD3, {}),
+    "layernorm_policy": (TD3X, {"policy": LayerNormPolicy}),
+    "td3_lap": (TD3LAP, {}),
+    "td3_nstep": (TD3NStep, {}),
+    "td3_layernorm": (TD3LayerNorm, {}),
+    "td3_c51": (TD3C51, {"v_min": -10.0, "v_max": 400.0}),
+}
+
+
+def build(name: str, env_id: str, batch_size: int) -> TD3X:
+    cls, kwargs = CASES[name]
+    kwargs = dict(kwargs)
+    policy = kwargs.pop("policy", None)
+    algo = cls if policy is None else (lambda _mlp, env, **kw: cls(policy, env, **kw))  # the user's policy class
+    return make_model(algo, env_id, 0, {"batch_size": batch_size, **kwargs})
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--env", default="Hopper-v5")
+    parser.add_argument("--batch-size", type=int, default=100)
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--cases", nargs="+", default=list(CASES), choices=list(CASES))
+    parser.add_argument("--chunks", type=int, default=6)
+    parser.add_argument("--chunk-steps", type=int, default=400)
+    parser.add_argument("--warmup", type=int, default=1_500, help="steps before timing (1000 random, then compilation)")
+    parser.add_argument("--json", default=None)
+    args = parser.parse_args()
+    th.set_num_threads(args.threads)
+    cases = ["stock", *[c for c in args.cases if c != "stock"]]
+    models = {name: build(name, args.env, args.batch_size) for name in cases}
+    for model in models.values():
+        model.learn(args.warmup)
+    rates: dict[str, list[float]] = {name: [] for name in cases}
+    cores: dict[str, list[float]] = {name: [] for name in cases}
+    for _ in range(args.chunks):
+        for name, model in models.items():
+            start, cpu = time.perf_counter(), time.process_time()
+            model.learn(args.chunk_steps, reset_num_timesteps=False)
+            wall = time.perf_counter() - start
+            rates[name].append(args.chunk_steps / wall)
+            cores[name].append((time.process_time() - cpu) / wall)
+    print(f"\n{args.env}, batch {args.batch_size}, {args.threads} torch threads, {platform.processor() or platform.machine()}")
+    result = {"env": args.env, "batch_size": args.batch_size, "threads": args.threads, "cases": {}}
+    for name in cases:
+        ratios = [r / s for r, s in zip(rates[name], rates["stock"])]
+        row = {
+            "steps_per_s": statistics.median(rates[name]),
+            "cores_used": statistics.median(cores[name]),
+            "ratio_to_stock": statistics.median(ratios),
+            "ratios": ratios,
+            "update_path": models[name].update_path,
+            "update_reason": models[name].update_reason,
+        }
+        result["cases"][name] = row
+        print(f"  {name:18s} {row['steps_per_s']:7.1f} steps/s  {row['cores_used']:.2f} cores  "
+              f"{row['ratio_to_stock']:.2f}x stock  ({row['update_path']})  per chunk {[round(r, 2) for r in ratios]}")
+    if args.json:
+        with open(args.json, "w") as file:
+            json.dump(result, file, indent=1)
+
+
+if __name__ == "__main__":
+    main()
