@@ -287,8 +287,8 @@ class SeedBatch:
             except Exception as error:
                 self._fail(0, error, keep_going)
             return self
-        # SB3's learn() runs one model to its end, and the shared update needs every seed's rollout first: so the
-        # batch runs that loop's body (_setup_learn, collect_rollouts, train) round by round.
+        # SB3's learn() runs one model to its end, and a round's batched pi(s) or collection threads need every seed
+        # at once: so the batch runs that loop's body (_setup_learn, collect_rollouts, train) round by round.
         runs = [
             self._start(i, totals[i], callbacks[i], resets[i], tb_log_name, progress_bar, log_interval)
             for i in range(len(self.models))

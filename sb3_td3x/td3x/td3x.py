@@ -372,7 +372,8 @@ class TD3X(OffPolicyAlgorithm):
         self._critic_lr_schedule = None if self.critic_learning_rate is None else FloatSchedule(self.critic_learning_rate)
         update_learning_rate(self.critic.optimizer, self.critic_lr_schedule(1))
         if request is None:
-            self._use_cuda_graph(False, "cuda_graph=None (auto): on a GPU, the compiled update runs in CUDA graphs")
+            on_gpu = "a compiled update runs in torch.compile's CUDA graphs" if self.device.type == "cuda" else "no CUDA device"
+            self._use_cuda_graph(False, f"cuda_graph=None (auto): {on_gpu}")
         elif request and not self.cuda_graph:
             self._use_cuda_graph(False, f"cuda_graph=True, but no CUDA device ({self.device})")
         elif request and (why := why_not_capture(self)) is not None:
@@ -893,34 +894,17 @@ class TD3X(OffPolicyAlgorithm):
         self._step_fn = self._step_fn_for = None
 
     def _excluded_save_params(self) -> list[str]:
+        # The networks' aliases and parameter lists (the policy is saved), the chosen update and its reasons (decided
+        # again after loading: cuda_graph from cuda_graph_request and this machine, update_compiled at the first
+        # train() from compile_update), and what belongs to this process (random streams, prefetched actions).
         return [
             *super()._excluded_save_params(),
-            "actor",
-            "critic",
-            "actor_target",
-            "critic_target",
-            "_critic_lr_schedule",
-            "_step_fn",
-            "_step_fn_for",
-            "_exploration_choice",
-            "_prefetched_action",
-            "random_streams",
-            "update_path",
-            "update_reason",
-            "cuda_graph",  # decided again when loaded, from cuda_graph_request (saved) and this machine
-            "cuda_graph_reason",
-            "update_compiled",  # decided again at the first train(), from compile_update (saved)
-            "compile_reason",
-            "exploration_path",
-            "_actor_params",
-            "_actor_target_params",
-            "_critic_params",
-            "_critic_target_params",
-            "_actor_batch_norm_stats",
-            "_actor_batch_norm_stats_target",
-            "_critic_batch_norm_stats",
-            "_critic_batch_norm_stats_target",
-        ]
+            "actor", "critic", "actor_target", "critic_target", "_critic_lr_schedule", "_step_fn", "_step_fn_for",
+            "_exploration_choice", "_prefetched_action", "random_streams", "update_path", "update_reason", "cuda_graph",
+            "cuda_graph_reason", "update_compiled", "compile_reason", "exploration_path",
+            "_actor_params", "_actor_target_params", "_critic_params", "_critic_target_params", "_actor_batch_norm_stats",
+            "_actor_batch_norm_stats_target", "_critic_batch_norm_stats", "_critic_batch_norm_stats_target",
+        ]  # fmt: skip
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         state_dicts = ["policy", "actor.optimizer", "critic.optimizer"]

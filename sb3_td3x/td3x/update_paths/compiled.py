@@ -113,7 +113,8 @@ class CompiledUpdate:
     A gradient step (steps 4 to 15) whose update runs as one compiled graph (see the module's docstring).
 
     Called as ``step(batch_size, update_actor)``, as :meth:`TD3X.gradient_step`. The first gradient step runs eagerly
-    when an optimizer has no state yet (Adam makes it at its first ``step()``). When the graph cannot be made, this
+    when an optimizer has no state yet (Adam makes it at its first ``step()``), and so does a step under a torch
+    dispatch mode (``FlopCounterMode``: torch.compile does not run under one). When the graph cannot be made, this
     step and every later one run eagerly, and :attr:`stepped_aside` holds the reason (``model.update_path`` becomes
     ``"eager"`` and ``model.update_reason`` says why).
 
@@ -124,6 +125,8 @@ class CompiledUpdate:
     #: ``torch.compile``'s backend: Inductor. (The catalogue of user changes in the tests also runs Dynamo's graphs
     #: with ``"aot_eager"``, AOTAutograd's graph on eager kernels, to check the capture alone, fast.)
     backend: str = "inductor"
+    #: ``torch.compile``'s ``options`` (Inductor's settings), for experiments; none by default.
+    options: dict[str, Any] | None = None
 
     def __init__(self, model: Any, mode: str | None = None):
         self.model = model
@@ -131,7 +134,8 @@ class CompiledUpdate:
         # A gradient_step of the user's own is compiled whole; TD3X's samples eagerly, then runs the compiled update.
         self.whole_step = bool(changed_hooks(model, ("gradient_step",)))
         compile_ = functools.partial(
-            th.compile, fullgraph=True, backend=self.backend, mode=mode if self.backend == "inductor" else None
+            th.compile, fullgraph=True, backend=self.backend, mode=mode if self.backend == "inductor" else None,
+            options=self.options,
         )
         # One compiled function per value of update_actor: each holds one graph, so no guard fails at each call.
         self._compiled = {flag: compile_(_own_code(_step(model, flag, self.whole_step))) for flag in (False, True)}
@@ -139,7 +143,7 @@ class CompiledUpdate:
     def __call__(self, batch_size: int, update_actor: bool) -> Infos:
         model = self.model
         optimizers = (model.critic.optimizer, model.actor.optimizer)
-        if self.stepped_aside is not None or not all(has_state(opt) for opt in optimizers):
+        if self.stepped_aside is not None or not all(has_state(opt) for opt in optimizers) or _dispatch_mode_active():
             return model.gradient_step(batch_size, update_actor)
         for optimizer in optimizers:
             prepare(optimizer)  # a schedule's learning rate, read by the graph from a tensor
@@ -163,6 +167,14 @@ class CompiledUpdate:
         if isinstance(batch_or_size, int):
             return model.gradient_step(batch_or_size, update_actor)
         return model.update_from_batch(batch_or_size, update_actor)
+
+
+def _dispatch_mode_active() -> bool:
+    """Whether a torch dispatch mode is active (``FlopCounterMode``, a tracer's): torch.compile does not run under one,
+    so the step runs eagerly, where the mode sees every operator."""
+    from torch.utils._python_dispatch import _get_current_dispatch_mode
+
+    return _get_current_dispatch_mode() is not None
 
 
 def _step(model: Any, update_actor: bool, whole_step: bool) -> Callable[[Any], Infos]:
