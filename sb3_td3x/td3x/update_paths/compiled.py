@@ -18,6 +18,7 @@ machine and the run, never about the user's code (:func:`why_not_compile`).
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import itertools
 import logging
@@ -195,25 +196,15 @@ def _own_code(fn: Callable[..., Any]) -> Callable[..., Any]:
 _UPDATES = itertools.count()
 
 
-def _compile_settings() -> Any:
+def _compile_settings() -> contextlib.ExitStack:
     """Dynamo traces ``torch.autograd.grad`` (:func:`~sb3_td3x.td3x.optim.minimize`), and Inductor draws random
     numbers with torch's generator, as eagerly (the same smoothing noise as the eager update, from the same seed)."""
     from torch._inductor import config as inductor_config
 
-    return _Both(th._dynamo.config.patch(trace_autograd_ops=True), inductor_config.patch(fallback_random=True))
-
-
-class _Both:
-    def __init__(self, *contexts: Any):
-        self.contexts = contexts
-
-    def __enter__(self) -> None:
-        for context in self.contexts:
-            context.__enter__()
-
-    def __exit__(self, *exc: Any) -> None:
-        for context in reversed(self.contexts):
-            context.__exit__(*exc)
+    stack = contextlib.ExitStack()
+    stack.enter_context(th._dynamo.config.patch(trace_autograd_ops=True))
+    stack.enter_context(inductor_config.patch(fallback_random=True))
+    return stack
 
 
 def why_not_one_graph(error: BaseException) -> str:
