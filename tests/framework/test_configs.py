@@ -15,13 +15,14 @@ from omegaconf import OmegaConf
 from stable_baselines3 import TD3
 
 from sb3_td3x import DDPG, PRESETS, TD3X
-from sb3_td3x.experiment.algos import algorithm_kwargs, build_algorithm
-from sb3_td3x.experiment.callbacks import PeriodicEvaluation
-from sb3_td3x.experiment.envs import make_eval_env, make_train_env
-from sb3_td3x.experiment.errors import ConfigError
-from sb3_td3x.experiment.loggers import build_logger, wandb_mode
 from sb3_td3x.common.redaction import MASK
-from sb3_td3x.experiment.schemas import AlgoConfig, CONF_DIR, check_config, compose_config, constructor_fields, public_config
+from sb3_td3x.experiment.configs.algos import algorithm_kwargs, build_algorithm
+from sb3_td3x.experiment.configs.compose import check_config, compose_config, public_config
+from sb3_td3x.experiment.configs.schemas import CONF_DIR, AlgoConfig, constructor_fields
+from sb3_td3x.experiment.errors import ConfigError
+from sb3_td3x.experiment.run.callbacks import PeriodicEvaluation
+from sb3_td3x.experiment.run.envs import make_eval_env, make_train_env
+from sb3_td3x.experiment.run.loggers import build_logger, wandb_mode
 
 
 def options(group: str) -> list[str]:

@@ -22,7 +22,7 @@ import torch
 import yaml
 
 from sb3_td3x.experiment.cli import EXIT_CONFIG_ERROR, EXIT_NOT_WRITTEN
-from sb3_td3x.experiment.lock import RunFolderBusy, RunFolderLock
+from sb3_td3x.experiment.run.lock import RunFolderBusy, RunFolderLock
 
 REPO = Path(__file__).resolve().parents[2]
 RUN = ["debug=smoke", "torch_threads=1", "logger=none", "progress_bar=false", "checkpoint.save_best=false"]

@@ -20,8 +20,8 @@ from stable_baselines3.common.preprocessing import is_image_space
 from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_td3x import TD3X
+from sb3_td3x.experiment.configs.schemas import constructor_fields
 from sb3_td3x.experiment.errors import ConfigError
-from sb3_td3x.experiment.schemas import constructor_fields
 
 # TD3X arguments that SB3's TD3 lacks, with TD3X's defaults, at which TD3X computes what SB3's TD3 does.
 _TD3X_ONLY = {

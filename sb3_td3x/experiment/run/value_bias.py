@@ -2,7 +2,7 @@
 
 TD3 (Fujimoto et al. 2018) exists to fix the overestimation of actor-critic values; its Figure 1 plots the critic's
 estimate against the true discounted return of the current policy over training. This module measures the same two
-numbers on the deterministic evaluation episodes that :class:`~sb3_td3x.experiment.callbacks.PeriodicEvaluation`
+numbers on the deterministic evaluation episodes that :class:`~sb3_td3x.experiment.run.callbacks.PeriodicEvaluation`
 runs anyway (no extra episode):
 
 - **Which states.** Every state s_t the evaluation episodes visit, except the last states of an episode cut by a
@@ -35,7 +35,7 @@ runs anyway (no extra episode):
   states were kept. With no state kept (e.g. Pendulum-v1's 200-step episodes, always truncated, with the default
   tolerance), every value is NaN and ``value_states`` 0: when every episode ran to its time limit
   (:func:`cut_at_time_limit`), a consequence of the configuration, which
-  :class:`~sb3_td3x.experiment.callbacks.PeriodicEvaluation` logs once at INFO with :func:`no_state_reason`. ``normalized_bias`` is NaN when |mean G| is below
+  :class:`~sb3_td3x.experiment.run.callbacks.PeriodicEvaluation` logs once at INFO with :func:`no_state_reason`. ``normalized_bias`` is NaN when |mean G| is below
   :data:`NORMALIZATION_FLOOR` times the mean |G|: returns of both signs cancel and the ratio would measure the
   cancellation, not the bias.
 """
@@ -50,7 +50,6 @@ import numpy as np
 import torch as th
 from stable_baselines3.common.type_aliases import DictReplayBufferSamples, ReplayBufferSamples
 
-VALUE_FIELDS = ("value_estimate", "true_value", "overestimation", "normalized_bias", "value_states")
 CHUNK = 16_384  # states per critic forward pass (bounds the memory for image observations)
 NORMALIZATION_FLOOR = 1e-3
 

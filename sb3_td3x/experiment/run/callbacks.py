@@ -1,4 +1,4 @@
-"""SB3 callbacks of an experiment: periodic evaluation, checkpoints, divergence check, progress bar, stop on signal.
+"""SB3 callbacks of a run: periodic evaluation, checkpoints, divergence check, progress bar.
 
 Everything that looks at or saves the model runs at a *rollout boundary* (``_on_rollout_start``, after the
 previous ``train()`` and before the next environment step). Inside ``_on_step`` the environment has stepped
@@ -16,8 +16,6 @@ import json
 import logging
 import math
 import os
-import signal
-import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -29,16 +27,21 @@ from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.vec_env import VecEnv, sync_envs_normalization
 from tqdm import tqdm
 
-from sb3_td3x.experiment import jobs
-from sb3_td3x.experiment.checkpoints import BEST, LAST, checkpoint_dir, save_checkpoint
 from sb3_td3x.experiment.errors import TrainingDiverged, TrainingInterrupted
-from sb3_td3x.experiment.value_bias import VALUE_FIELDS, Episode, EpisodeRecorder, cut_at_time_limit, measure_value_bias
+from sb3_td3x.experiment.layout import (
+    BEST,
+    EVALUATION_FIELDS,
+    EVALUATIONS_CSV,
+    EVALUATIONS_JSON,
+    LAST,
+    VALUE_FIELDS,
+    checkpoint_dir,
+)
+from sb3_td3x.experiment.run.checkpoints import save_checkpoint
+from sb3_td3x.experiment.run.folder import write_atomically
+from sb3_td3x.experiment.run.value_bias import Episode, EpisodeRecorder, cut_at_time_limit, measure_value_bias
 
 log = logging.getLogger(__name__)
-
-EVALUATIONS_CSV = "evaluations.csv"
-EVALUATIONS_JSON = "evaluations.json"
-EVALUATION_FIELDS = ("timesteps", "mean_return", "std_return", "mean_length", "wall_time")
 
 
 class PeriodicEvaluation(BaseCallback):
@@ -50,7 +53,7 @@ class PeriodicEvaluation(BaseCallback):
     (progress bar, best checkpoint, the caller's ``report``) in order.
 
     With ``value_bias`` (``eval.value_bias``, on by default) the same episodes also measure the critic's value
-    estimate against the true discounted return (:mod:`sb3_td3x.experiment.value_bias`): the columns
+    estimate against the true discounted return (:mod:`sb3_td3x.experiment.run.value_bias`): the columns
     ``value_estimate``, ``true_value``, ``overestimation``, ``normalized_bias`` and ``value_states``, logged as
     ``eval/<column>``. Off, neither the columns nor the metrics exist. Rows of an earlier run without them (a resumed
     run) are written with empty cells.
@@ -195,7 +198,7 @@ class Checkpointer(BaseCallback):
     """Write ``checkpoints/last`` every ``freq`` steps, at the end of training and when a stop is requested;
     ``checkpoints/best`` when an evaluation beats the best so far (use :meth:`on_evaluation` as a listener).
 
-    A stop (SIGINT/SIGTERM, see :class:`StopOnSignal`) is honoured at the next rollout boundary: the checkpoint is
+    A stop (SIGINT/SIGTERM: :class:`~sb3_td3x.experiment.stops.StopOnSignal`) is honoured at the next rollout boundary: the checkpoint is
     written, then :class:`TrainingInterrupted` is raised out of ``learn()``.
 
     :param experiment_state: returns the picklable state saved next to the model (evaluation history, ...)
@@ -301,51 +304,3 @@ class ProgressBar(BaseCallback):
         if self.bar is not None:
             self.bar.close()
             self.bar = None
-
-
-class StopOnSignal:
-    """While active, SIGINT and SIGTERM (and, in a job submitit runs on SLURM, its time-out signal) ask the
-    checkpointers (one per seed of a batch) to save and stop instead of killing the process.
-
-    The first signal restores the previous handlers, so a second Ctrl+C stops at once (the last periodic
-    checkpoint is still there). Outside the main thread (Hydra's joblib launcher uses worker processes, whose
-    main thread is fine; a thread pool is not) signals cannot be caught and this does nothing. What a job does once
-    its checkpoint is written (submitit's requeue) is :func:`sb3_td3x.experiment.jobs.after_stop`'s.
-    """
-
-    def __init__(self, *checkpointers: Checkpointer) -> None:
-        self.checkpointers = checkpointers  # one per seed in a seed batch
-        self.previous: dict[int, Any] = {}
-
-    def __enter__(self) -> StopOnSignal:
-        if threading.current_thread() is threading.main_thread():
-            for sig in jobs.stop_signals():
-                self.previous[sig] = signal.signal(sig, self._handle)
-                jobs.keep_handler(sig, self.previous[sig])
-        return self
-
-    @jobs.ours
-    def _handle(self, signum: int, frame: Any) -> None:
-        self._restore()
-        jobs.note_signal(signum)
-        for checkpointer in self.checkpointers:
-            checkpointer.request_stop(signal.Signals(signum).name, 128 + signum)
-
-    def _restore(self) -> None:
-        for sig, handler in self.previous.items():
-            signal.signal(sig, handler)
-        self.previous = {}
-
-    def __exit__(self, *exc: object) -> None:
-        self._restore()
-
-
-def write_atomically(path: Path, text: str) -> None:
-    """Replace ``path`` with ``text`` whole: a reader (or a crash) sees the old file or the new one, never a part."""
-    tmp = path.with_name(path.name + ".tmp")
-    try:
-        tmp.write_text(text)
-        os.replace(tmp, path)
-    except OSError:
-        tmp.unlink(missing_ok=True)
-        raise

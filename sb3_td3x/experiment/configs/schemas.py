@@ -1,36 +1,28 @@
-"""Typed schemas of the configuration tree in ``conf/``, and the range checks types cannot express.
+"""Typed schemas of the configuration tree in ``conf/``, and the resolvers its YAML files use.
 
-The dataclasses are registered in Hydra's ``ConfigStore`` when this module is imported; every YAML in
-``conf/`` extends one of them (``defaults: [base_algo, _self_]``), so a misspelt key or a value of the
-wrong type fails while Hydra composes the config, before anything is built. :func:`check_config` then
-checks ranges and names (``algo.tau`` in [0, 1] as TD3X's constructor checks it, a registered gymnasium id,
-...) and raises one :class:`~sb3_td3x.experiment.errors.ConfigError` listing every problem.
+The dataclasses are registered in Hydra's ``ConfigStore`` when this module is imported; every YAML in ``conf/``
+extends one of them (``defaults: [base_algo, _self_]``), so a misspelt key or a value of the wrong type fails while
+Hydra composes the config, before anything is built. :mod:`~sb3_td3x.experiment.configs.compose` composes the config
+and checks what types cannot express.
 """
 
 from __future__ import annotations
 
-import difflib
 import inspect
-import math
-import re
+import time
 from dataclasses import dataclass, field, fields, make_dataclass
 from pathlib import Path
-from typing import Any, get_type_hints
+from typing import Any
 
-import gymnasium as gym
-import torch
-from hydra import compose, initialize_config_dir
 from hydra.core.config_store import ConfigStore
-from omegaconf import II, MISSING, DictConfig, OmegaConf
+from omegaconf import II, MISSING, OmegaConf
 from stable_baselines3.td3.policies import TD3Policy
 
-from sb3_td3x.common.redaction import redact
-from sb3_td3x.experiment.errors import ConfigError
 from sb3_td3x.td3x.presets import PRESETS
 from sb3_td3x.td3x.td3x import TD3X
 
 # conf/ of a source checkout (run.py's config_path).
-CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
+CONF_DIR = Path(__file__).resolve().parents[3] / "conf"
 
 # TD3X's constructor arguments that the run sets, not the algo config: seed and device (top-level fields), verbose,
 # and TensorBoard (the logger group).
@@ -117,7 +109,7 @@ class EvalConfig:
     deterministic: bool = True
     seed_offset: int = 1_000_000  # the evaluation env is seeded with seed + seed_offset before every evaluation
     # The critic's value estimate against the true discounted return on the evaluation episodes
-    # (sb3_td3x/experiment/value_bias.py): eval/value_estimate, true_value, overestimation, normalized_bias
+    # (sb3_td3x/experiment/run/value_bias.py): eval/value_estimate, true_value, overestimation, normalized_bias
     value_bias: bool = True
     # A state of a time-limit-truncated episode counts when its missing return tail weighs gamma^k <= this
     value_horizon_tolerance: float = 0.01
@@ -187,7 +179,7 @@ class ExperimentConfig:
     torch_threads: int | None = None
     progress_bar: bool = True
     # Several processes of a launch on one GPU (a joblib or submitit_local multirun, local sweep workers) share it
-    # through CUDA MPS where the machine has it (sb3_td3x/experiment/mps.py); false: time slices of the driver
+    # through CUDA MPS where the machine has it (sb3_td3x/experiment/launch/mps.py); false: time slices of the driver
     mps: bool = True
 
 
@@ -215,23 +207,24 @@ def preset_config(kwargs: dict[str, Any]) -> dict[str, Any]:
     return config
 
 
-def _run_dir(resume: str | None, run_dir: str) -> str:
-    from sb3_td3x.experiment.run_folder import hydra_run_dir
-
-    return hydra_run_dir(resume, run_dir)
-
-
 def _records_subdir(resume: str | None, restarts: Any = 0) -> str:
-    """Cached, so that every reading names the same folder (a resume's is dated). ``restarts`` (the SLURM job's
-    restart count) is in the cache's key only: a requeued job names its own even with the first start's cache
-    (Hydra's submitit launcher copies the launching process's cache into each job)."""
-    from sb3_td3x.experiment.run_folder import hydra_records_subdir
-
-    return hydra_records_subdir(resume)
+    """``hydra.output_subdir``: where Hydra writes its record of a launch in the run folder. The first launch's stays
+    in ``.hydra``; a resume adds ``.hydra/resumed_<date>``, a SLURM job started again ``.hydra/requeued_<n>``
+    (``restarts``: conf/config.yaml passes ``SLURM_RESTART_COUNT``, read in the job itself). Cached, so that every
+    reading names the same folder (a resume's is dated); the restart count is part of the cache's key, so a requeued
+    job names its own even with the first start's cache (Hydra's submitit launcher copies the launching process's
+    cache into each job)."""
+    if resume is not None:
+        return f".hydra/resumed_{time.strftime('%Y-%m-%d_%H-%M-%S')}"
+    try:
+        count = int(restarts)
+    except (TypeError, ValueError):
+        count = 0
+    return f".hydra/requeued_{count}" if count > 0 else ".hydra"
 
 
 def _first_seed(seeds: Any) -> int:
-    """The default ``seed``: 0, or the first of ``seeds=[...]``, whose folder Hydra then makes (checkpoints.seed_folders
+    """The default ``seed``: 0, or the first of ``seeds=[...]``, whose folder Hydra then makes (layout.seed_folders
     names the others alike)."""
     return int(seeds[0]) if seeds else 0
 
@@ -242,9 +235,6 @@ def _seed_label(seed: int, seeds: Any) -> str:
 
 
 register_configs()
-if not OmegaConf.has_resolver("td3x.run_dir"):
-    # conf/config.yaml: the folder a run trains in; a resumed run, or a job started again, goes on in its own
-    OmegaConf.register_new_resolver("td3x.run_dir", _run_dir)
 if not OmegaConf.has_resolver("td3x.records_subdir"):
     # conf/config.yaml: Hydra's record of each launch; a resumed or requeued run adds its own beside the first
     OmegaConf.register_new_resolver("td3x.records_subdir", _records_subdir, use_cache=True)
@@ -255,146 +245,5 @@ if not OmegaConf.has_resolver("td3x.seed_label"):
     OmegaConf.register_new_resolver("td3x.seed_label", _seed_label)
 
 
-def _integer_keys() -> set[str]:
-    """The dotted keys of the integer fields of the schemas (``total_timesteps``, ``algo.buffer_size``, ...)."""
-    groups = {"algo": AlgoConfig, "env": EnvConfig, "eval": EvalConfig, "checkpoint": CheckpointConfig,
-              "logger": LoggerConfig, "video": VideoConfig, "": ExperimentConfig}
-    keys = set()
-    for prefix, schema in groups.items():
-        for name, hint in get_type_hints(schema).items():
-            if hint in (int, int | None):
-                keys.add(f"{prefix}.{name}" if prefix else name)
-    return keys
-
-
-def whole_float_problems(overrides: list[str]) -> list[str]:
-    """For each whole float given to an integer field (``total_timesteps=1e6``: Hydra reads a float, which the field
-    refuses), how to write it: ``total_timesteps=1000000``, or Hydra's cast ``total_timesteps=int(1e6)``."""
-    keys = _integer_keys()
-    problems = []
-    for arg in overrides:
-        match = re.match(r"^[+~]{0,2}([A-Za-z_][\w.]*)=([-+]?[0-9._]*(?:[eE][-+]?[0-9]+)?)$", arg)
-        if match is None or match.group(1) not in keys or re.fullmatch(r"[-+]?[0-9_]+", match.group(2)):
-            continue
-        try:
-            value = float(match.group(2))
-        except ValueError:
-            continue
-        if math.isfinite(value) and value.is_integer():
-            key, text = match.groups()
-            problems.append(f"{arg}: {key} is an integer, write {key}={int(value)} or {key}=int({text})")
-    return problems
-
-
 #: Config groups of conf/config.yaml; a resumed run keeps the choices it was started with.
 CONFIG_GROUPS = ("algo", "env", "eval", "logger", "video", "debug")
-
-
-def compose_config(overrides: list[str] | None = None, conf_dir: Path = CONF_DIR) -> DictConfig:
-    """The config ``python run.py <overrides>`` would run, composed without starting a Hydra app.
-
-    ``run_dir`` keeps its default interpolation; set it before :func:`~sb3_td3x.experiment.runner.run_experiment`.
-    """
-    overrides = list(overrides or [])
-    problems = whole_float_problems(overrides)
-    if problems:
-        raise ConfigError("; ".join(problems) + ".")
-    with initialize_config_dir(config_dir=str(Path(conf_dir).resolve()), version_base="1.3"):
-        return compose(config_name="config", overrides=overrides)
-
-
-def check_config(cfg: DictConfig) -> None:
-    """Check ranges and names that the types cannot; raise one :class:`ConfigError` listing every problem."""
-    problems: list[str] = []
-
-    def need(condition: bool, message: str) -> None:
-        if not condition:
-            problems.append(message)
-
-    need(cfg.total_timesteps > 0, f"total_timesteps={cfg.total_timesteps} must be a positive number of steps")
-    need(cfg.n_envs >= 1, f"n_envs={cfg.n_envs} must be at least 1")
-    need(cfg.seed >= 0, f"seed={cfg.seed} must be >= 0")
-    if cfg.seeds is not None:
-        seeds = list(cfg.seeds)
-        if not seeds or min(seeds) < 0 or len(set(seeds)) != len(seeds):
-            problems.append(f"seeds={seeds} must list distinct seeds >= 0, e.g. seeds=[0,1,2]")
-        elif cfg.seed not in seeds:
-            problems.append(f"seed={cfg.seed} is not one of seeds={seeds}; drop seed= (it is then the first seed)")
-        if cfg.seed_run_dirs is not None and len(cfg.seed_run_dirs) != len(seeds):
-            problems.append(f"seed_run_dirs has {len(cfg.seed_run_dirs)} folders for {len(seeds)} seeds; leave it unset")
-    need(cfg.torch_threads is None or cfg.torch_threads >= 1, f"torch_threads={cfg.torch_threads} must be >= 1 or null")
-    need(
-        cfg.get("seed_processes") is None or cfg.seed_processes >= 1,
-        f"seed_processes={cfg.get('seed_processes')} must be >= 1 or null (one process per core on a CPU)",
-    )
-    problems += _device_problems(cfg.device)
-
-    algo = cfg.algo
-    # The constructor's own range checks (TD3X.hyperparameter_problems): one source of truth for both.
-    for name, allowed in TD3X.hyperparameter_problems(**{name: algo[name] for name in constructor_fields()}):
-        problems.append(f"algo.{name}={algo[name]} must be {allowed}")
-    need(algo.train_freq >= 1, f"algo.train_freq={algo.train_freq} must be >= 1")
-    need(
-        algo.train_freq_unit in ("step", "episode"),
-        f"algo.train_freq_unit={algo.train_freq_unit!r} must be 'step' or 'episode'",
-    )
-    need(algo.exploration_noise >= 0, f"algo.exploration_noise={algo.exploration_noise} must be >= 0")
-    need(
-        algo.net_arch is None or (len(algo.net_arch) > 0 and min(algo.net_arch) >= 1),
-        f"algo.net_arch={algo.net_arch} must list positive layer widths, or be null for the policy's default",
-    )
-    need(algo.n_critics >= 1, f"algo.n_critics={algo.n_critics} must be >= 1")
-
-    problems += _env_id_problems(cfg.env.id)
-    need(cfg.env.max_episode_steps is None or cfg.env.max_episode_steps >= 1, "env.max_episode_steps must be >= 1 or null")
-    need(cfg.eval.freq >= 1, f"eval.freq={cfg.eval.freq} must be >= 1 environment step")
-    need(cfg.eval.n_episodes >= 1, f"eval.n_episodes={cfg.eval.n_episodes} must be >= 1")
-    need(
-        0 <= cfg.eval.value_horizon_tolerance <= 1,
-        f"eval.value_horizon_tolerance={cfg.eval.value_horizon_tolerance} must be in [0, 1]",
-    )
-    need(cfg.checkpoint.freq >= 1, f"checkpoint.freq={cfg.checkpoint.freq} must be >= 1 environment step")
-    need(cfg.logger.log_interval >= 1, f"logger.log_interval={cfg.logger.log_interval} must be >= 1 episode")
-    if cfg.logger.wandb is not None:
-        mode = cfg.logger.wandb.mode
-        need(
-            mode in ("auto", "online", "offline", "disabled"),
-            f"logger.wandb.mode={mode!r} must be auto, online, offline or disabled",
-        )
-    if cfg.video is not None:
-        need(cfg.video.format in ("gif", "mp4"), f"video.format={cfg.video.format!r} must be 'gif' or 'mp4'")
-        need(cfg.video.n_episodes >= 1, f"video.n_episodes={cfg.video.n_episodes} must be >= 1")
-
-    if problems:
-        raise ConfigError("Invalid configuration: " + "; ".join(problems) + ".")
-
-
-def _device_problems(device: str) -> list[str]:
-    if device == "auto":
-        return []
-    try:
-        parsed = torch.device(device)
-    except RuntimeError:
-        return [f"device={device!r} is not a torch device; use auto, cpu, cuda or cuda:N"]
-    if parsed.type == "cuda" and not torch.cuda.is_available():
-        return [f"device={device!r} but this machine has no CUDA GPU; use device=cpu or device=auto"]
-    return []
-
-
-def _env_id_problems(env_id: str) -> list[str]:
-    if env_id in gym.registry:
-        return []
-    close = difflib.get_close_matches(env_id, list(gym.registry), n=3)
-    hint = f" Did you mean {', '.join(close)}?" if close else ""
-    return [f"env.id={env_id!r} is not a registered gymnasium environment.{hint}"]
-
-
-def public_config(cfg: DictConfig) -> dict[str, Any]:
-    """The resolved config as plain containers, with its secrets masked (``***``) by
-    :func:`sb3_td3x.common.redaction.redact`: the value under a credential-like key, the password of a URL.
-
-    This is what is saved in the run folder and sent to W&B. The schemas have no credential field (W&B reads its
-    key from ``WANDB_API_KEY`` or ``wandb login``), but free-form dicts such as ``env.kwargs`` could receive one.
-    """
-    container = OmegaConf.to_container(cfg, resolve=True, throw_on_missing=True)
-    return redact(container)  # type: ignore[return-value]
