@@ -6,6 +6,7 @@ jobs: ``python run.py -m seed=0,1,2,3,4``; continue a stopped run: ``python run.
 See docs/experiments.md.
 """
 
+import os
 import sys
 from pathlib import Path
 
@@ -26,6 +27,7 @@ def main(cfg: DictConfig) -> float:
 
 
 if __name__ == "__main__":
+    sys.path.append(os.getcwd())  # algo._target_ may name a module of the folder run.py is started from, as python -m
     redact_log_records()  # every log line of the run, Hydra's included, with its secrets masked
     command = check_command_line(sys.argv[1:], CONF_DIR)  # refuses a bad one; names the run folder
     job_watch.install()  # hydra/launcher=submitit_slurm: follow the jobs with scontrol where sacct does not answer

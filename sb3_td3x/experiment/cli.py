@@ -48,8 +48,7 @@ from sb3_td3x.experiment.errors import (
     TrainingInterrupted,
 )
 from sb3_td3x.experiment.launch.hydra_jobs import HydraJobs
-from sb3_td3x.experiment.layout import seed_folders
-from sb3_td3x.experiment.run.folder import check_new, check_resumable, config_for_resume, folder_to_train_in
+from sb3_td3x.experiment.run.folder import check_new, check_resumable, config_for_resume, folder_to_train_in, seed_folders
 from sb3_td3x.experiment.runner import run_experiment
 
 EXIT_CONFIG_ERROR = 2

@@ -1,8 +1,13 @@
-"""The task function: train, evaluate and checkpoint one run described by a composed config.
+"""The task function: train, evaluate and checkpoint what a composed config describes.
 
 ``run.py`` calls :func:`run_experiment` under ``@hydra.main``; the Optuna sweeps call it directly with configs
 from ``hydra.compose``. It does not read Hydra's global state: the run folder is ``cfg.run_dir`` (``run.py``
 sets it to Hydra's output folder), or ``cfg.resume`` when continuing a run.
+
+It decides where the run starts (:func:`~sb3_td3x.experiment.run.folder.where_to_start`), checks the config, and hands
+the training to a :class:`~sb3_td3x.experiment.launch.launcher.Launcher`: :class:`InThisProcess` (one seed, or
+``seeds=[...]`` together: :mod:`~sb3_td3x.experiment.run.train`, :mod:`~sb3_td3x.experiment.run.seeds`), or
+:class:`~sb3_td3x.experiment.launch.seed_processes.SeedProcesses`.
 """
 
 from __future__ import annotations
@@ -19,6 +24,7 @@ from sb3_td3x.experiment import jobs
 from sb3_td3x.experiment.analysis.statistics import STATISTICS
 from sb3_td3x.experiment.configs.compose import check_config
 from sb3_td3x.experiment.errors import ConfigError, RunFilesNotWritten
+from sb3_td3x.experiment.launch.launcher import Launcher
 from sb3_td3x.experiment.launch.seed_processes import SeedProcesses, processes_for
 from sb3_td3x.experiment.run.checkpoints import last_step
 from sb3_td3x.experiment.run.folder import REQUEUED, RESTARTED, where_to_start
@@ -79,14 +85,9 @@ def run_experiment(
         raise ConfigError(f"seeds_aggregate={seeds_aggregate!r} must be one of {', '.join(STATISTICS)}")
     if cfg.torch_threads is not None:
         torch.set_num_threads(cfg.torch_threads)
+    launch = _launcher(cfg, start.how, report, seeds_aggregate, report_seeds)
     try:
-        if cfg.seeds is not None:
-            if report is None and report_seeds is None:  # a sweep's trial reports from one process
-                if (processes := processes_for(cfg)) > 1:
-                    launch = SeedProcesses(cfg, start.how, seeds_aggregate, processes)
-                    return launch.run(str(cfg.device), bool(cfg.mps), say=log.info)
-            return run_seeds(cfg, start.how, report, seeds_aggregate, report_seeds)
-        return run_one(cfg, start.how, report)
+        return launch.run(str(cfg.device), bool(cfg.mps), say=log.info)
     except RunFilesNotWritten as error:
         raise RunFilesNotWritten(_not_written(cfg, str(error))) from error
     except OSError as error:
@@ -108,3 +109,41 @@ def _not_written(cfg: DictConfig, what: str) -> str:
         f"The run in {run_dir} stopped: {what}. Its checkpoint of step {step} is whole, so nothing trained before it is "
         f"lost: free some space, then continue with: python run.py resume={run_dir}"
     )
+
+
+def _launcher(
+    cfg: DictConfig,
+    how: str,
+    report: Callable[[int, float], None] | None,
+    statistic: str,
+    report_seeds: Callable[[int, dict[int, float]], None] | None,
+) -> Launcher:
+    """Where the config trains: ``cfg.seeds`` in one process per core (unless a sweep's trial reports: it reports from
+    one process), else this process."""
+    if cfg.seeds is not None and report is None and report_seeds is None and (processes := processes_for(cfg)) > 1:
+        return SeedProcesses(cfg, how, statistic, processes)
+    return InThisProcess(cfg, how, report, statistic, report_seeds)
+
+
+class InThisProcess(Launcher):
+    """The run (or ``cfg.seeds``, together in one :class:`~sb3_td3x.SeedBatch`) in this process; :meth:`start` returns
+    the final mean return (of the seeds: their ``statistic``)."""
+
+    def __init__(
+        self,
+        cfg: DictConfig,
+        how: str,
+        report: Callable[[int, float], None] | None,
+        statistic: str,
+        report_seeds: Callable[[int, dict[int, float]], None] | None,
+    ) -> None:
+        self.cfg, self.how, self.report, self.statistic, self.report_seeds = cfg, how, report, statistic, report_seeds
+
+    @property
+    def side_by_side(self) -> int:
+        return 1
+
+    def start(self) -> float:
+        if self.cfg.seeds is not None:
+            return run_seeds(self.cfg, self.how, self.report, self.statistic, self.report_seeds)
+        return run_one(self.cfg, self.how, self.report)

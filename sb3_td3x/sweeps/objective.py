@@ -58,7 +58,7 @@ SEED_VALUES, SEED_VALUES_STEP = "seed_values", "seed_values_step"
 def seed_overrides(seeds: list[int], run_dir: Path, resume: bool = False) -> list[str]:
     """A trial's own overrides: its seed (and ``seeds=[...]`` for several), its folder, and ``resume`` for the copy
     of an interrupted trial (several seeds resume from the first seed's folder)."""
-    from sb3_td3x.experiment.layout import seed_folders
+    from sb3_td3x.experiment.run.folder import seed_folders
 
     if len(seeds) == 1:
         return [f"seed={seeds[0]}", f"run_dir={run_dir}"] + ([f"resume={run_dir}"] if resume else [])
@@ -281,8 +281,8 @@ class TrialObjective:
         the heartbeat starts afresh in its own folder instead, since its first worker may still be writing to the
         old one."""
         from sb3_td3x.experiment.errors import ConfigError
-        from sb3_td3x.experiment.layout import seed_folders
         from sb3_td3x.experiment.run.checkpoints import resume_checkpoint
+        from sb3_td3x.experiment.run.folder import seed_folders
 
         if not trial.user_attrs.get(RESUMABLE):
             return None

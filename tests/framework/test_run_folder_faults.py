@@ -267,7 +267,7 @@ BAD_INPUTS = {
     "algo.policy=CnnPolicy": "algo.policy=CnnPolicy needs image observations",
     "+env.kwargs.foo=1": "unexpected keyword argument 'foo'",
     "seeds=[]": "seeds=[] must list distinct seeds",
-    "algo.taau=0.1": "Key 'taau' not in 'AlgoConfig'",
+    "algo.taau=0.1": "takes no argument 'taau'. Did you mean algo.tau?",
     "run_dir=<a file>": "is a file, not a folder",
 }
 

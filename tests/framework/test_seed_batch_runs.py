@@ -21,8 +21,8 @@ import torch as th
 from omegaconf import OmegaConf
 
 from sb3_td3x.experiment.configs.compose import compose_config
-from sb3_td3x.experiment.layout import seed_folders
 from sb3_td3x.experiment.run.checkpoints import META_FILE
+from sb3_td3x.experiment.run.folder import seed_folders
 
 REPO = Path(__file__).resolve().parents[2]
 # Pendulum-v1, 600 steps, training from step 150, evaluated every 150 steps on 2 episodes. Short on purpose: the

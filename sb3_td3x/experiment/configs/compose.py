@@ -1,11 +1,10 @@
-"""The config ``run.py`` trains: composed from ``conf/``, checked, and recorded.
+"""The config ``run.py`` trains: composed from ``conf/`` and checked.
 
 - :func:`compose_config`: what ``python run.py <overrides>`` runs, composed without starting a Hydra app (the sweeps,
   the API, and ``run.py``'s check of its command line before Hydra writes anything);
 - :func:`check_config`: ranges and names that the types of :mod:`~sb3_td3x.experiment.configs.schemas` cannot express
   (``algo.tau`` in [0, 1] as TD3X's constructor checks it, a registered gymnasium id, ...), as one
-  :class:`~sb3_td3x.experiment.errors.ConfigError` listing every problem;
-- :func:`public_config`: the resolved config with its secrets masked, which a run folder records.
+  :class:`~sb3_td3x.experiment.errors.ConfigError` listing every problem.
 """
 
 from __future__ import annotations
@@ -13,16 +12,16 @@ from __future__ import annotations
 import difflib
 import math
 from pathlib import Path
-from typing import Any, get_type_hints
+from typing import get_type_hints
 
 import gymnasium as gym
 import torch
 from hydra import compose, initialize_config_dir
 from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.core.override_parser.types import Override
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
-from sb3_td3x.common.redaction import redact
+from sb3_td3x.experiment.configs.algos import argument_problems
 from sb3_td3x.experiment.configs.schemas import (
     CONF_DIR,
     AlgoConfig,
@@ -121,6 +120,7 @@ def check_config(cfg: DictConfig, on_this_machine: bool = True) -> None:
     problems += _device_problems(cfg.device, on_this_machine)
 
     algo = cfg.algo
+    problems += argument_problems(algo)  # every key against the signature of the class algo._target_ names
     # The constructor's own range checks (TD3X.hyperparameter_problems): one source of truth for both.
     for name, allowed in TD3X.hyperparameter_problems(**{name: algo[name] for name in constructor_fields()}):
         problems.append(f"algo.{name}={algo[name]} must be {allowed}")
@@ -178,14 +178,3 @@ def _env_id_problems(env_id: str) -> list[str]:
     close = difflib.get_close_matches(env_id, list(gym.registry), n=3)
     hint = f" Did you mean {', '.join(close)}?" if close else ""
     return [f"env.id={env_id!r} is not a registered gymnasium environment.{hint}"]
-
-
-def public_config(cfg: DictConfig) -> dict[str, Any]:
-    """The resolved config as plain containers, with its secrets masked (``***``) by
-    :func:`sb3_td3x.common.redaction.redact`: the value under a credential-like key, the password of a URL.
-
-    This is what is saved in the run folder and sent to W&B. The schemas have no credential field (W&B reads its
-    key from ``WANDB_API_KEY`` or ``wandb login``), but free-form dicts such as ``env.kwargs`` could receive one.
-    """
-    container = OmegaConf.to_container(cfg, resolve=True, throw_on_missing=True)
-    return redact(container)  # type: ignore[return-value]

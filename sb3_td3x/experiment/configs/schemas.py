@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import inspect
 import time
+import types
+import typing
 from dataclasses import dataclass, field, fields, make_dataclass
 from pathlib import Path
 from typing import Any
@@ -30,14 +32,21 @@ SET_BY_THE_RUN = ("seed", "device", "verbose", "tensorboard_log")
 _SIMPLE_TYPES: dict[str, type] = {"int": int, "float": float, "bool": bool, "str": str}
 
 
-def _field_type(annotation: str) -> Any:
-    """The config type of a constructor argument annotated ``annotation`` (``float | Schedule | None`` gives
-    ``float | None``): its one plain type, or None when it has none (an object such as ``action_noise``)."""
-    members = [member.strip() for member in annotation.split("|")]
-    plain = [_SIMPLE_TYPES[member] for member in members if member in _SIMPLE_TYPES]
+def plain_type(annotation: Any) -> tuple[type, bool] | None:
+    """The one plain type (``int``, ``float``, ``bool`` or ``str``) that a constructor argument's annotation allows,
+    and whether it allows None too: ``float | Schedule | None`` gives ``(float, True)``. None when it allows none or
+    several (an object such as ``action_noise``, or no annotation). Reads annotations written as text (``from
+    __future__ import annotations``) and as types alike."""
+    if isinstance(annotation, str):
+        names = [member.strip() for member in annotation.split("|")]
+    else:
+        union = typing.get_origin(annotation) in (typing.Union, types.UnionType)
+        members = typing.get_args(annotation) if union else (annotation,)
+        names = ["None" if member is type(None) else getattr(member, "__name__", str(member)) for member in members]
+    plain = [_SIMPLE_TYPES[name] for name in names if name in _SIMPLE_TYPES]
     if len(plain) != 1:
         return None
-    return plain[0] | None if "None" in members else plain[0]
+    return plain[0], "None" in names
 
 
 def constructor_fields(cls: type = TD3X) -> dict[str, tuple[Any, Any]]:
@@ -47,10 +56,9 @@ def constructor_fields(cls: type = TD3X) -> dict[str, tuple[Any, Any]]:
     for name, parameter in inspect.signature(cls.__init__).parameters.items():
         if parameter.default is inspect.Parameter.empty or name.startswith("_") or name in SET_BY_THE_RUN:
             continue
-        annotation = parameter.annotation
-        kind = _field_type(annotation if isinstance(annotation, str) else getattr(annotation, "__name__", str(annotation)))
+        kind = plain_type(parameter.annotation)
         if kind is not None:
-            result[name] = (kind, parameter.default)
+            result[name] = (kind[0] | None if kind[1] else kind[0], parameter.default)
     return result
 
 
@@ -187,7 +195,11 @@ def register_configs() -> None:
     """Register the schemas; ``conf/`` refers to them by these names."""
     cs = ConfigStore.instance()
     cs.store(name="base_config", node=ExperimentConfig)
-    cs.store(group="algo", name="base_algo", node=AlgoConfig)
+    # The algo node takes keys beyond TD3X's typed fields: the arguments of the class algo._target_ names, which
+    # configs.algos.argument_problems checks against that class's signature before anything is built.
+    algo = OmegaConf.structured(AlgoConfig)
+    OmegaConf.set_struct(algo, False)
+    cs.store(group="algo", name="base_algo", node=algo)
     for name, kwargs in PRESETS.items():  # conf/algo/<preset>.yaml: `- preset@_here_: <preset>` in its defaults
         cs.store(group="algo/preset", name=name, node=preset_config(kwargs))
     cs.store(group="env", name="base_env", node=EnvConfig)

@@ -35,9 +35,8 @@ from sb3_td3x.experiment.layout import (
     EVALUATIONS_JSON,
     LAST,
     VALUE_FIELDS,
-    checkpoint_dir,
 )
-from sb3_td3x.experiment.run.checkpoints import save_checkpoint
+from sb3_td3x.experiment.run.checkpoints import checkpoint_dir, save_checkpoint
 from sb3_td3x.experiment.run.folder import write_atomically
 from sb3_td3x.experiment.run.value_bias import Episode, EpisodeRecorder, cut_at_time_limit, measure_value_bias
 

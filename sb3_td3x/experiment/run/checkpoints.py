@@ -43,7 +43,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecNormalize
 
 from sb3_td3x.common.random_streams import RandomStreams
 from sb3_td3x.experiment.errors import ConfigError, RunFilesNotWritten
-from sb3_td3x.experiment.layout import LAST, checkpoint_dir
+from sb3_td3x.experiment.layout import LAST
 
 log = logging.getLogger(__name__)
 
@@ -53,6 +53,11 @@ VECNORMALIZE_FILE = "vecnormalize.pkl"
 STATE_FILE = "state.pkl"
 META_FILE = "meta.json"
 DAMAGED = ".damaged"  # suffix of a checkpoint found damaged, kept for inspection
+
+
+def checkpoint_dir(run_dir: Path, name: str) -> Path:
+    """The folder of checkpoint ``name`` (:data:`~sb3_td3x.experiment.layout.LAST` or ``BEST``) of ``run_dir``."""
+    return run_dir / "checkpoints" / name
 
 
 def _sibling(target: Path, suffix: str) -> Path:

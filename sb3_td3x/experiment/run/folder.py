@@ -29,6 +29,7 @@ from __future__ import annotations
 import json
 import os
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -39,13 +40,7 @@ from omegaconf.errors import OmegaConfBaseException
 from sb3_td3x.common.redaction import redact
 from sb3_td3x.experiment import jobs
 from sb3_td3x.experiment.errors import ConfigError
-from sb3_td3x.experiment.layout import (
-    CONFIG_FILE,
-    EVALUATIONS_CSV,
-    PROVENANCE_FILE,
-    SUMMARY_FILE,
-    seed_folders,
-)
+from sb3_td3x.experiment.layout import CONFIG_FILE, EVALUATIONS_CSV, PROVENANCE_FILE, SUMMARY_FILE
 from sb3_td3x.experiment.run.checkpoints import checkpoint_config, last_step, resume_checkpoint
 from sb3_td3x.experiment.run.lock import RunFolderLock
 
@@ -159,7 +154,7 @@ def config_for_resume(cfg: DictConfig, overrides: list[str]) -> DictConfig:
     """
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
-    from sb3_td3x.experiment.configs.compose import compose_config, public_config
+    from sb3_td3x.experiment.configs.compose import compose_config
     from sb3_td3x.experiment.configs.schemas import CONFIG_GROUPS, ExperimentConfig
 
     run_dir = Path(cfg.resume)
@@ -248,6 +243,20 @@ def saved_config(run_dir: Path, checkpoint: Path | None) -> dict[str, Any]:
     if not isinstance(loaded, dict):
         raise ConfigError(f"resume={run_dir}: {path} does not hold a config (it is empty or damaged).")
     return loaded
+
+
+def seed_folders(run_dir: Path | str, seeds: Sequence[int], seed: int | None = None) -> list[Path]:
+    """The run folder of each of ``seeds`` trained together from ``run_dir``; the one function that names them.
+
+    Where ``run_dir`` has a part ``seed<seed>`` (the folder Hydra made for ``run.py seeds=[...]``, from its first
+    seed), that part names each seed instead: ``runs/hopper/td3/seed3/<date>`` for seed 3, as ``seed=3`` names it.
+    Otherwise (a ``run_dir=`` of the user's, a multirun job, a sweep trial) ``<run_dir>/seed<s>``.
+    """
+    parts = list(Path(run_dir).parts)
+    if seed is None or f"seed{seed}" not in parts:
+        return [Path(run_dir) / f"seed{s}" for s in seeds]
+    at = len(parts) - 1 - parts[::-1].index(f"seed{seed}")
+    return [Path(*parts[:at], f"seed{s}", *parts[at + 1 :]) for s in seeds]
 
 
 def seed_run_dirs(cfg: DictConfig) -> list[Path]:
@@ -359,6 +368,18 @@ class RunFolder:
         if self._lock is not None:
             self._lock.release()
             self._lock = None
+
+
+def public_config(cfg: DictConfig) -> dict[str, Any]:
+    """The resolved config as plain containers, with its secrets masked (``***``) by
+    :func:`sb3_td3x.common.redaction.redact`: the value under a credential-like key, the password of a URL.
+
+    This is what the run folder records (``config.yaml``, each checkpoint's ``meta.json``) and W&B receives. The
+    schemas have no credential field (W&B reads its key from ``WANDB_API_KEY`` or ``wandb login``), but free-form
+    dicts such as ``env.kwargs`` could receive one.
+    """
+    container = OmegaConf.to_container(cfg, resolve=True, throw_on_missing=True)
+    return redact(container)  # type: ignore[return-value]
 
 
 def write_atomically(path: Path, text: str) -> None:

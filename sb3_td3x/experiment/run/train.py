@@ -24,13 +24,11 @@ from omegaconf import DictConfig
 from sb3_td3x.common.redaction import redact
 from sb3_td3x.experiment.analysis.plots import plot_learning_curve
 from sb3_td3x.experiment.configs.algos import algorithm_class, build_algorithm
-from sb3_td3x.experiment.configs.compose import public_config
-from sb3_td3x.experiment.errors import ConfigError
-from sb3_td3x.experiment.layout import LAST, LEARNING_CURVE_PNG, checkpoint_dir
+from sb3_td3x.experiment.layout import LAST, LEARNING_CURVE_PNG
 from sb3_td3x.experiment.run.callbacks import Checkpointer, DivergenceCheck, PeriodicEvaluation, ProgressBar
-from sb3_td3x.experiment.run.checkpoints import load_checkpoint, load_resumable
+from sb3_td3x.experiment.run.checkpoints import checkpoint_dir, load_checkpoint, load_resumable
 from sb3_td3x.experiment.run.envs import make_eval_env, make_train_env, record_video
-from sb3_td3x.experiment.run.folder import RunFolder, check_resume, saved_config
+from sb3_td3x.experiment.run.folder import RunFolder, check_resume, public_config, saved_config
 from sb3_td3x.experiment.run.loggers import build_logger, start_wandb
 from sb3_td3x.experiment.stops import StopOnSignal
 
@@ -121,7 +119,6 @@ def _model(run: Run, config: dict[str, Any], train_env: Any) -> tuple[dict[str, 
     trained with. Returns the experiment state to restore and what this session's provenance line adds."""
     cfg = run.cfg
     if cfg.resume is None:
-        check_buffer_fits(cfg, train_env)
         run.model = build_algorithm(cfg, train_env)
         _warn_never_trains(cfg)
         return None, {}
@@ -191,31 +188,6 @@ def _callbacks(run: Run, eval_env: Any, config: dict[str, Any], experiment_state
     if run.progress is not None:
         evaluation.listeners.append(run.progress.on_evaluation)
     run.callbacks = [DivergenceCheck(), evaluation, checkpointer] + ([run.progress] if run.progress is not None else [])
-
-
-def check_buffer_fits(cfg: DictConfig, env: Any) -> None:
-    """A :class:`ConfigError` when the replay buffer alone would need more memory than the machine has."""
-    import numpy as np
-    from gymnasium import spaces
-
-    def nbytes(space: Any) -> int:
-        if isinstance(space, spaces.Dict):
-            return sum(nbytes(sub) for sub in space.spaces.values())
-        return int(np.prod(space.shape or (1,))) * np.dtype(space.dtype or np.float32).itemsize
-
-    per_transition = nbytes(env.observation_space) * (1 if cfg.algo.optimize_memory_usage else 2)
-    per_transition += nbytes(env.action_space) + 3 * 4  # rewards, dones, timeouts
-    needed = int(cfg.algo.buffer_size) * per_transition
-    try:
-        memory = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-    except (ValueError, OSError, AttributeError):  # not a POSIX system: nothing to compare with
-        return
-    if needed > memory:
-        raise ConfigError(
-            f"algo.buffer_size={cfg.algo.buffer_size} needs about {needed / 2**30:.1f} GiB for the replay buffer "
-            f"({per_transition} bytes per transition of {cfg.env.id}), more than this machine's {memory / 2**30:.1f} GiB "
-            "of memory. Lower algo.buffer_size (the paper's is 1000000)."
-        )
 
 
 def finish(run: Run) -> float:
