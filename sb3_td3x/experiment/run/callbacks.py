@@ -11,11 +11,13 @@ evaluations and checkpoints wait for the end of the episode.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import logging
 import math
 import os
+import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -26,6 +28,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.vec_env import VecEnv, sync_envs_normalization
 from tqdm import tqdm
+from tqdm.contrib.logging import logging_redirect_tqdm
 
 from sb3_td3x.experiment.errors import TrainingDiverged, TrainingInterrupted
 from sb3_td3x.experiment.layout import (
@@ -85,6 +88,8 @@ class PeriodicEvaluation(BaseCallback):
         self.history: list[dict[str, float]] = []
         self.timing: dict[str, float] = {}  # seconds of the last evaluation: episodes, value measurement
         self._said_value_reasons: set[str] = set()  # kinds of NaN already logged
+        #: why value columns were NaN (once per kind: the step, whether the configuration explains it, the reason)
+        self.value_notes: list[dict[str, Any]] = []
 
     @property
     def last_timesteps(self) -> int:
@@ -157,7 +162,8 @@ class PeriodicEvaluation(BaseCallback):
         return result
 
     def _say_value_reason(self, values: dict[str, float], episodes: list[Episode], reason: str) -> None:
-        """Log why a value column is NaN, once per run and kind.
+        """Log why a value column is NaN, once per run and kind; :attr:`value_notes` keeps the whole reason (and what to
+        change) for the run's ``summary.json``.
 
         No state kept because every episode ran to the evaluation env's time limit, which is shorter than a state
         needs for its return to be known to the tolerance (Pendulum-v1's 200 steps with gamma 0.99, the README's first
@@ -169,8 +175,13 @@ class PeriodicEvaluation(BaseCallback):
         if kind in self._said_value_reasons:
             return
         self._said_value_reasons.add(kind)
+        self.value_notes.append({"step": int(self.num_timesteps), "expected": expected, "why": reason})
         if expected:
-            log.info("Value measurement at step %d: no value columns (NaN): %s (said once per run)", self.num_timesteps, reason)
+            log.info(
+                "Value measurement at step %d: no value columns, the episodes end at their time limit too soon "
+                "(summary.json says why)",
+                self.num_timesteps,
+            )
         else:
             log.warning("Value measurement at step %d gives NaN: %s (said once per run)", self.num_timesteps, reason)
 
@@ -287,6 +298,7 @@ class ProgressBar(BaseCallback):
             dynamic_ncols=True,
             mininterval=0.5,
         )
+        _console_through_bars.open()
 
     def _on_step(self) -> bool:
         assert self.bar is not None
@@ -303,3 +315,34 @@ class ProgressBar(BaseCallback):
         if self.bar is not None:
             self.bar.close()
             self.bar = None
+            _console_through_bars.close()
+
+
+class _ConsoleThroughBars:
+    """While a progress bar is open in this process (one per seed of a batch), the console's log lines go through
+    ``tqdm.write`` (tqdm's ``logging_redirect_tqdm``), which clears the bars, writes the line and draws them again: a
+    line never cuts a bar. The console handlers come back when the last bar closes; a log file is left as it is."""
+
+    def __init__(self) -> None:
+        self.bars = 0
+        self.redirect: contextlib.ExitStack | None = None
+
+    def open(self) -> None:
+        self.bars += 1
+        consoles = [handler for handler in logging.root.handlers if _is_console(handler)]
+        if self.redirect is None and consoles:  # no console handler (a script without logging): nothing to redirect
+            self.redirect = contextlib.ExitStack()
+            self.redirect.enter_context(logging_redirect_tqdm())
+
+    def close(self) -> None:
+        self.bars = max(0, self.bars - 1)
+        if self.bars == 0 and self.redirect is not None:
+            self.redirect.close()
+            self.redirect = None
+
+
+def _is_console(handler: logging.Handler) -> bool:
+    return isinstance(handler, logging.StreamHandler) and getattr(handler, "stream", None) in (sys.stdout, sys.stderr)
+
+
+_console_through_bars = _ConsoleThroughBars()

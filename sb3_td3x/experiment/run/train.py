@@ -214,6 +214,8 @@ def finish(run: Run) -> float:
         "wall_time_s_this_session": time.time() - run.started,
         "provenance": provenance(),
     }
+    if evaluation.value_notes:  # why value columns are NaN, and what to change (the log says it in one line)
+        summary["value_measurement_notes"] = evaluation.value_notes
     if cfg.seeds is not None:
         summary["trained_with_seeds"] = list(cfg.seeds)  # launched together (seeds=[...])
         summary["trained_together"] = run.trained_together  # in one process, one sb3_td3x.SeedBatch
