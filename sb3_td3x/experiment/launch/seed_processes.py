@@ -154,7 +154,7 @@ def _outcomes(
 
 
 def _train_group(config: dict, how: str, indices: list[int], threads: int, statistic: str, k: int, results: Any) -> None:
-    """A process of :func:`run_in_processes`: its seeds trained with ``threads`` torch threads; the outcome put in
+    """A process of :class:`SeedProcesses`: its seeds trained with ``threads`` torch threads; the outcome put in
     ``results`` as ``(k, outcome)``."""
     if jobs.current_job() is None:
         os.setpgrp()  # a Ctrl+C at the terminal reaches run.py only, which passes it on

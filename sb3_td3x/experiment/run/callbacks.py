@@ -208,8 +208,8 @@ class Checkpointer(BaseCallback):
     """Write ``checkpoints/last`` every ``freq`` steps, at the end of training and when a stop is requested;
     ``checkpoints/best`` when an evaluation beats the best so far (use :meth:`on_evaluation` as a listener).
 
-    A stop (SIGINT/SIGTERM: :class:`~sb3_td3x.experiment.stops.StopOnSignal`) is honoured at the next rollout boundary: the checkpoint is
-    written, then :class:`TrainingInterrupted` is raised out of ``learn()``.
+    A stop (SIGINT/SIGTERM: :class:`~sb3_td3x.experiment.stops.StopOnSignal`) is honoured at the next rollout
+    boundary: the checkpoint is written, then :class:`TrainingInterrupted` is raised out of ``learn()``.
 
     :param experiment_state: returns the picklable state saved next to the model (evaluation history, ...)
     :param config: the run's resolved config, kept in each checkpoint's ``meta.json`` (what a resume is checked against)
