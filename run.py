@@ -6,6 +6,7 @@ jobs: ``python run.py -m seed=0,1,2,3,4``; continue a stopped run: ``python run.
 See docs/experiments.md.
 """
 
+import os
 import sys
 from pathlib import Path
 
@@ -13,9 +14,9 @@ import hydra
 from omegaconf import DictConfig
 
 from sb3_td3x.common.redaction import redact_log_records
-from sb3_td3x.experiment import job_watch
-from sb3_td3x.experiment.cli import check_command_line, shared_gpu
+from sb3_td3x.experiment.cli import check_command_line
 from sb3_td3x.experiment.cli import main as run_main
+from sb3_td3x.experiment.launch import job_watch
 
 CONF_DIR = Path(__file__).resolve().parent / "conf"
 
@@ -26,8 +27,9 @@ def main(cfg: DictConfig) -> float:
 
 
 if __name__ == "__main__":
+    sys.path.append(os.getcwd())  # algo._target_ may name a module of the folder run.py is started from, as python -m
     redact_log_records()  # every log line of the run, Hydra's included, with its secrets masked
-    check_command_line(sys.argv[1:], CONF_DIR)
+    command = check_command_line(sys.argv[1:], CONF_DIR)  # refuses a bad one; names the run folder
     job_watch.install()  # hydra/launcher=submitit_slurm: follow the jobs with scontrol where sacct does not answer
-    with shared_gpu(sys.argv[1:], CONF_DIR):  # a multirun's jobs side by side on one GPU: CUDA MPS (mps.py)
-        main()
+    sys.argv[1:] = command.hydra_args  # what Hydra reads: the command line, and the run folder named above
+    command.run(main)  # a multirun's jobs side by side on one GPU: CUDA MPS (sb3_td3x/experiment/launch/mps.py)

@@ -17,9 +17,9 @@ import argparse
 import torch as th
 from stable_baselines3.common.callbacks import BaseCallback
 
-from sb3_td3x.experiment.algos import build_algorithm
-from sb3_td3x.experiment.envs import make_train_env
-from sb3_td3x.experiment.schemas import compose_config
+from sb3_td3x.experiment.configs.algos import build_algorithm
+from sb3_td3x.experiment.configs.compose import compose_config
+from sb3_td3x.experiment.run.envs import make_train_env
 
 
 class ActorSnapshots(BaseCallback):

@@ -23,7 +23,7 @@ reset_num_timesteps=False)``, a GPU synchronized at both ends). Four ways to tra
   seeds=[0,2,4,6],[1,3,5,7]`` runs. On a CPU, one thread per process beats two threads in one for these small
   products.
 - ``td3x_procs``: N processes, each a lone ``TD3X`` of seed i, started together and sharing the cores, each with
-  torch threads = max(1, threads // N): ``threads_per_job`` of ``sb3_td3x.experiment.cli``, what a Hydra multirun of
+  torch threads = max(1, threads // N): ``threads_per_job`` of ``sb3_td3x.experiment.launch.hydra_jobs``, what a Hydra multirun of
   N jobs side by side gets. The processes are not pinned to cores. With N above the core count they time-share the
   cores (a joblib multirun with ``n_jobs=-1`` would run as many jobs as cores at once and queue the rest).
 - ``sb3_procs``: the same with ``stable_baselines3.TD3``. One SB3 process (N = 1) is always measured: it is the
@@ -33,7 +33,7 @@ reset_num_timesteps=False)``, a GPU synchronized at both ends). Four ways to tra
   with one thread per process XLA's CPU thread pools are asked for one thread, as ``benchmarks/throughput.py`` does.
 
 **CUDA MPS** (``--mps on``, ``off`` or ``both``): the separate-process modes run with an MPS control daemon started
-for them (``sb3_td3x.experiment.mps``, as ``run.py -m`` starts one on a GPU machine), or without (the driver's time
+for them (``sb3_td3x.experiment.launch.mps``, as ``run.py -m`` starts one on a GPU machine), or without (the driver's time
 slices), or both, each measurement labelled ``<mode>+mps`` when under MPS. Needs a GPU and
 ``nvidia-cuda-mps-control``; elsewhere ``on`` and ``both`` stop with a message.
 
@@ -86,7 +86,6 @@ from stable_baselines3 import TD3
 from stable_baselines3.common.logger import configure
 from stable_baselines3.common.noise import NormalActionNoise
 from stable_baselines3.common.utils import get_device
-
 from throughput import as_part_of_a_run
 
 from sb3_td3x import TD3X, SeedBatch
@@ -297,7 +296,7 @@ def seed_groups(mode: str, n_seeds: int, threads: int) -> list[list[int]]:
 
 def threads_for(mode: str, n_seeds: int, threads: int) -> int:
     """Torch threads of each process: all of ``threads`` for the batch, the cores shared among the processes else."""
-    from sb3_td3x.experiment.cli import threads_per_job  # here: it imports Hydra, which the workers do without
+    from sb3_td3x.experiment.launch.hydra_jobs import threads_per_job
 
     if base_mode(mode) in ("batched", "batched_threads"):
         return threads
@@ -475,7 +474,7 @@ def parse_arguments(argv: list[str] | None = None) -> argparse.Namespace:
         except ImportError:
             parser.error('--modes sbx_procs: sbx-rl is not installed (pip install -e ".[peers]")')
     if args.mps != "off":
-        from sb3_td3x.experiment import mps
+        from sb3_td3x.experiment.launch import mps
 
         if th.device(args.device).type != "cuda" or mps.decide(2, True, True, Path("/tmp")).reason.startswith(
             ("no CUDA", mps.CONTROL)
@@ -493,7 +492,7 @@ def shared_gpu(mode: str, n_seeds: int):
     else nothing."""
     import contextlib
 
-    from sb3_td3x.experiment import mps
+    from sb3_td3x.experiment.launch import mps
 
     if not mode.endswith(MPS_SUFFIX):
         return contextlib.nullcontext()

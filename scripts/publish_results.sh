@@ -54,7 +54,7 @@ aggregate() {  # OUT_NAME then group folders <env>/<algo> (those that exist)
   done
   if ((${#dirs[@]})); then
     echo "== $out"
-    "$python" -m sb3_td3x.experiment.aggregate "${dirs[@]}" --out "$dst/$out"
+    "$python" -m sb3_td3x.experiment.analysis.aggregate "${dirs[@]}" --out "$dst/$out"
     rm -f "$dst/$out/aggregate.md"  # printed above and kept as aggregate.csv; a .md under docs/ would be a page
   fi
 }

@@ -1,7 +1,7 @@
 """Fill the tables of docs/results.md from the published results (run by scripts/publish_results.sh).
 
 Each table sits between two markers of the page, ``<!-- NAME -->`` and ``<!-- /NAME -->``, and is rewritten from
-``<results docs dir>/<group>/aggregate.csv`` and ``per_seed.csv`` (what ``sb3_td3x.experiment.aggregate`` wrote:
+``<results docs dir>/<group>/aggregate.csv`` and ``per_seed.csv`` (what ``sb3_td3x.experiment.analysis.aggregate`` wrote:
 the finished seeds of each algorithm, or all its seeds as far as they have all got while none has finished) and the
 runs' records under ``<results docs dir>/runs/<env>/<algo>/seed<S>/``, which say how far each seed has got. Nothing
 in the tables is typed by hand, so publishing again after more runs brings the page up to date.

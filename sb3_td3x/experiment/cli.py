@@ -1,27 +1,45 @@
-"""What ``run.py`` does around :func:`~sb3_td3x.experiment.runner.run_experiment`: check the command line before Hydra
-writes anything, rebuild the config of a resumed run, give each job of a multirun its share of the cores, mask the
-secrets in Hydra's own records, and turn user errors into a one-paragraph message and an exit status. Which folder a
-run trains in, and what may continue it, is :mod:`sb3_td3x.experiment.run_folder`'s."""
+"""What ``run.py`` does around :func:`~sb3_td3x.experiment.runner.run_experiment`.
+
+Before Hydra starts, :func:`check_command_line` reads the command line once, with Hydra's own parsers:
+
+- a command line that cannot run is refused with a one-paragraph message (exit status 2) before Hydra writes
+  anything: a wrong group choice (``env=antt``), a key the config does not have, a value out of range, a ``resume=``
+  that cannot be resumed or whose folder another process holds, a ``run_dir=`` that is a file or holds a run;
+- the config is composed once (a multirun's sweep standing for its first values) and checked
+  (:func:`~sb3_td3x.experiment.configs.compose.check_config`);
+- the folder a single run trains in is named (:func:`~sb3_td3x.experiment.run.folder.folder_to_train_in`:
+  ``resume=``'s, or the one a requeued SLURM job trained in, else ``run_dir``) and handed to Hydra as
+  ``hydra.run.dir``, so that Hydra writes its records and ``run.log`` there;
+- the launch is described (:class:`~sb3_td3x.experiment.launch.hydra_jobs.HydraJobs`): a multirun's jobs side by side
+  on this machine's GPU share it through CUDA MPS.
+
+In each job, :func:`main` (under ``@hydra.main``) rebuilds the config of a resumed run, gives the job its share of
+the cores, masks the secrets in Hydra's own records, and turns user errors into a one-paragraph message and an exit
+status.
+"""
 
 from __future__ import annotations
 
-import contextlib
 import difflib
 import math
 import os
-import re
 import sys
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from hydra.core.hydra_config import HydraConfig
 from hydra.core.override_parser.overrides_parser import OverridesParser
+from hydra.core.override_parser.types import Override
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from sb3_td3x.common.redaction import redact, redact_log_records
-from sb3_td3x.experiment import jobs
-from sb3_td3x.experiment.checkpoints import seed_folders
+from sb3_td3x.experiment import jobs, stops
+from sb3_td3x.experiment.configs.compose import check_config, compose_config, whole_float_problems
+from sb3_td3x.experiment.configs.schemas import CONFIG_GROUPS
 from sb3_td3x.experiment.errors import (
     ConfigError,
     RunFilesNotWritten,
@@ -29,72 +47,123 @@ from sb3_td3x.experiment.errors import (
     TrainingDiverged,
     TrainingInterrupted,
 )
-from sb3_td3x.experiment.run_folder import check_new, check_resumable, config_for_resume
+from sb3_td3x.experiment.launch.hydra_jobs import HydraJobs
+from sb3_td3x.experiment.run.folder import check_new, check_resumable, config_for_resume, folder_to_train_in, seed_folders
 from sb3_td3x.experiment.runner import run_experiment
-from sb3_td3x.experiment.schemas import CONFIG_GROUPS, whole_float_problems
 
 EXIT_CONFIG_ERROR = 2
 EXIT_DIVERGED = 3
 EXIT_NOT_WRITTEN = 4  # a full disk, a quota: the run's files could not be written
 EXIT_SEED_PROCESS_LOST = 5  # seeds=[...]: a process training some seeds was killed (the others finished)
 
+#: Hydra's flags that only print something: nothing is launched, so nothing is checked or named.
+_INFORMATION = ("help", "hydra_help", "version", "shell_completion", "info", "experimental_rerun")
 
-def check_command_line(args: list[str], conf_dir: Path) -> None:
-    """Exit with a one-paragraph message (status 2) when the command line cannot run: a wrong group choice
-    (``env=antt``), a key the config does not have (``algo.taau=0.1``), a ``resume=`` that cannot be resumed or whose
-    folder another process holds, a ``run_dir=`` that is a file or already holds a run.
 
-    Runs before ``@hydra.main``: Hydra would report these as a page of its own (with exit status 1), and would
-    write its records into the run folder before the task could refuse it.
-    """
+@dataclass
+class CommandLine:
+    """``run.py``'s command line, read once by :func:`check_command_line`."""
+
+    hydra_args: list[str]  #: what Hydra parses: the command line, plus ``hydra.run.dir`` where it was named here
+    launch: HydraJobs  #: the jobs this command line launches
+    device: str = "cpu"  #: the config's device and ``mps``: whether the jobs share a GPU through CUDA MPS
+    mps: bool = False
+
+    def run(self, main: Callable[[], Any]) -> Any:
+        """Hydra's ``main`` (which reads ``hydra_args`` from ``sys.argv``), inside the launch's CUDA MPS."""
+        self.launch.main = main
+        return self.launch.run(self.device, self.mps)
+
+
+def check_command_line(args: list[str], conf_dir: Path) -> CommandLine:
+    """Read ``run.py``'s command line (see the module's docstring); exit with a one-paragraph message (status 2) when
+    it cannot run. Runs before ``@hydra.main``: Hydra would report these errors as a page of its own (with exit status
+    1), and would write its records into the run folder before the task could refuse it."""
+    from hydra._internal.utils import get_args_parser  # the parser of @hydra.main itself
+
+    parsed = get_args_parser().parse_args(args)  # a wrong flag: argparse's message and exit status 2, as Hydra's
+    as_given = CommandLine(list(args), HydraJobs({}, multirun=False))
+    if any(getattr(parsed, flag, None) for flag in _INFORMATION):
+        return as_given
     try:
-        problems = whole_float_problems(args)
-        if problems:
-            raise ConfigError("; ".join(problems) + ".")
-        plain = []  # the overrides to compose, a sweep's first value standing for the sweep
-        for arg in args:
-            if re.match(r"^[+~]?[A-Za-z_][\w.]*=", arg) is None:
-                continue  # a flag such as -m, or something Hydra will explain itself
-            try:
-                override = OverridesParser.create().parse_override(arg)
-            except Exception:  # Hydra's parser reports its own syntax errors well
-                continue
-            key = override.key_or_group
-            values = list(override.sweep_string_iterator()) if override.is_sweep_override() else [override.value()]
-            if key in CONFIG_GROUPS:
-                for value in values:
-                    _check_group_choice(conf_dir, key, value)
-            elif key == "resume":
-                for value in values:
-                    if value is not None:
-                        check_resumable(Path(str(value)))
-                        if len(values) == 1:
-                            resume = OmegaConf.create({"resume": str(value)})
-                            config_for_resume(resume, [a for a in args if re.match(r"^[+~]?[A-Za-z_][\w.]*=", a)])
-            elif key == "run_dir" and not override.is_sweep_override() and values[0] is not None:
-                check_new(Path(str(values[0])))
-            if not key.startswith("hydra"):
-                plain.append(arg if not override.is_sweep_override() else f"{arg.split('=', 1)[0]}={values[0]}")
-        _check_composes(plain, conf_dir)
+        overrides = OverridesParser.create().parse_overrides(parsed.overrides)
+    except Exception:  # noqa: BLE001  (Hydra's parser reports its own syntax errors well, when Hydra starts)
+        return as_given
+    try:
+        return _read(args, parsed, overrides, conf_dir)
     except ConfigError as error:
         _exit(f"Error: {_one_paragraph(error)}", EXIT_CONFIG_ERROR)
+        raise  # not reached: _exit exits
 
 
-def _check_composes(overrides: list[str], conf_dir: Path) -> None:
-    """Compose the config as Hydra will (with a sweep's first values): a key it does not have, a value of the
-    wrong type, become a :class:`ConfigError` naming the override."""
+def _read(args: list[str], parsed: Any, overrides: list[Override], conf_dir: Path) -> CommandLine:
+    problems = whole_float_problems(overrides)
+    if problems:
+        raise ConfigError("; ".join(problems) + ".")
+    first: list[str] = []  # the overrides of the first run: a sweep's first value stands for the sweep
+    n_runs, resume, named = 1, None, False
+    for override in overrides:
+        key = override.key_or_group
+        values = list(override.sweep_string_iterator()) if override.is_sweep_override() else [override.value()]
+        n_runs *= max(1, len(values))
+        if key in CONFIG_GROUPS:
+            for value in values:
+                _check_group_choice(conf_dir, key, value)
+        elif key == "resume":
+            for value in values:
+                if value is not None:
+                    check_resumable(Path(str(value)))
+            resume = str(values[0]) if len(values) == 1 and values[0] is not None else None
+        elif key == "run_dir" and not override.is_sweep_override() and values[0] is not None:
+            check_new(Path(str(values[0])))
+        named = named or key == "hydra.run.dir"
+        text = override.input_line
+        first.append(text if not override.is_sweep_override() else f"{text.split('=', 1)[0]}={values[0]}")
+    conf, config_name, first = _config_source(parsed, conf_dir, first)
+    multirun = bool(parsed.multirun)
+    if resume is not None:  # a resume's overrides apply to its saved config, which config_for_resume checks
+        cfg = config_for_resume(OmegaConf.create({"resume": resume}), [o.input_line for o in overrides])
+        hydra = _compose([o for o in first if o.lstrip("+~").startswith("hydra")], conf, config_name).hydra
+    else:
+        composed = _compose(first, conf, config_name)
+        hydra, cfg = composed.hydra, composed
+    launch = HydraJobs(hydra.launcher, multirun, n_runs)
+    if resume is None:
+        check_config(cfg, on_this_machine=launch.side_by_side > 0)
+    hydra_args = list(args)
+    if not multirun and not named:
+        folder = folder_to_train_in(resume, str(cfg.run_dir))
+        hydra_args.append(f"hydra.run.dir={_quoted(str(folder))}")
+    return CommandLine(hydra_args, launch, str(cfg.device), bool(cfg.mps))
+
+
+def _config_source(parsed: Any, conf_dir: Path, overrides: list[str]) -> tuple[Path, str, list[str]]:
+    """The config folder and name Hydra composes from (``-cp``, ``-cn``), and the overrides with ``-cd``'s folder added
+    to the search path, as Hydra adds it."""
+    conf = conf_dir
+    if parsed.config_path is not None:
+        conf = Path(parsed.config_path) if Path(parsed.config_path).is_absolute() else conf_dir.parent / parsed.config_path
+    if parsed.config_dir is not None:
+        overrides = [*overrides, f"hydra.searchpath=[{_quoted('file://' + str(Path(parsed.config_dir).resolve()))}]"]
+    return conf, parsed.config_name or "config", overrides
+
+
+def _compose(overrides: list[str], conf: Path, config_name: str) -> DictConfig:
+    """The config of ``overrides``, as Hydra will compose it, with its ``hydra`` node: a key it does not have, a
+    value of the wrong type, become a :class:`ConfigError` naming the override."""
     from hydra.errors import HydraException
 
-    from sb3_td3x.experiment.schemas import compose_config
-
-    if any(arg.split("=", 1)[0].lstrip("+~") == "resume" for arg in overrides):
-        return  # a resume's overrides apply to the saved config (config_for_resume checks them)
     try:
-        compose_config(overrides, conf_dir)
+        return compose_config(overrides, conf, config_name=config_name, with_hydra=True)
     except (HydraException, OmegaConfBaseException) as error:
         causes = [error] + ([error.__cause__] if error.__cause__ is not None else [])
         message = " ".join(" ".join(str(cause).split()).rstrip(".") + "." for cause in causes)
         raise ConfigError(f"{message} (python run.py --cfg job prints the whole config.)") from None
+
+
+def _quoted(text: str) -> str:
+    """``text`` as a quoted value of Hydra's override grammar."""
+    return "'" + text.replace("\\", "\\\\").replace("'", "\\'") + "'"
 
 
 def _check_group_choice(conf_dir: Path, group: str, choice: object) -> None:
@@ -106,82 +175,6 @@ def _check_group_choice(conf_dir: Path, group: str, choice: object) -> None:
     raise ConfigError(
         f"{group}={choice}: there is no config '{choice}' in {conf_dir / group}.{hint} The choices are: {', '.join(options)}."
     )
-
-
-def shared_gpu(args: list[str], conf_dir: Path) -> contextlib.AbstractContextManager:
-    """CUDA MPS around a multirun whose jobs run side by side on this machine's GPU (the joblib and submitit_local
-    launchers; on SLURM the cluster decides: docs/cluster.md), as :mod:`sb3_td3x.experiment.mps` decides. One line
-    says what it did where the jobs use a GPU; nothing happens elsewhere."""
-    from sb3_td3x.experiment import mps
-    from sb3_td3x.experiment.schemas import compose_config
-
-    if not {"-m", "--multirun"} & set(args):
-        return contextlib.nullcontext()
-    launcher, n_jobs, combinations, plain = "joblib_cores", None, 1, []
-    for arg in args:
-        if re.match(r"^[+~]?[A-Za-z_][\w./]*=", arg) is None:
-            continue
-        try:
-            override = OverridesParser.create().parse_override(arg)
-        except Exception:  # check_command_line has let Hydra explain it
-            return contextlib.nullcontext()
-        values = list(override.sweep_string_iterator()) if override.is_sweep_override() else [override.value()]
-        combinations *= max(1, len(values))
-        key = override.key_or_group
-        if key == "hydra/launcher":
-            launcher = str(values[0])
-        elif key == "hydra.launcher.n_jobs":
-            n_jobs = int(values[0])
-        elif not key.startswith("hydra"):
-            plain.append(f"{arg.split('=', 1)[0]}={values[0]}")
-    if launcher not in ("joblib_cores", "joblib", "submitit_local"):
-        return contextlib.nullcontext()
-    parallel = combinations
-    if launcher != "submitit_local":
-        n_jobs = n_jobs if n_jobs is not None else (-1 if launcher == "joblib_cores" else 10)  # the plugin's default: 10
-        parallel = min(combinations, jobs_at_once(n_jobs, jobs.available_cores()))
-    try:
-        cfg = compose_config(plain, conf_dir)
-    except Exception:  # noqa: BLE001  (a composition error is reported by Hydra itself)
-        return contextlib.nullcontext()
-    return mps.around_launch(parallel, str(cfg.device), bool(cfg.mps), say=lambda line: print(line, file=sys.stderr))
-
-
-def default_threads(multirun: bool, launcher: DictConfig | dict) -> int | None:
-    """Torch threads for a run that leaves ``torch_threads`` unset (docs/experiments.md).
-
-    In a SLURM job, the cores it was given (``--cpus-per-task``: ``cpus_per_task`` of Hydra's submitit launcher);
-    in a multirun of a launcher that says its cores per job (``cpus_per_task`` of submitit's local launcher), those;
-    in a joblib multirun, the machine's cores shared among the jobs that run at once; else None: torch's default,
-    every core, for a single run.
-    """
-    cores = jobs.job_cores()
-    if cores is not None:
-        return cores
-    if not multirun:
-        return None
-    if launcher.get("cpus_per_task") is not None:
-        return int(launcher["cpus_per_task"])
-    if "n_jobs" in launcher:
-        return threads_per_job(launcher.get("n_jobs"), jobs.available_cores())
-    return None
-
-
-def threads_per_job(n_jobs: int | None, cores: int) -> int | None:
-    """Torch threads for one job of a multirun: the cores shared among the jobs that run at once.
-
-    :param n_jobs: the launcher's ``n_jobs`` (joblib's meaning: -1 one job per core, -2 all cores but one, ...), or
-        None for a launcher that runs one job at a time (Hydra's basic launcher)
-    :return: the thread count, or None to leave torch's default (all cores) when jobs do not run side by side
-    """
-    if n_jobs is None:
-        return None
-    return max(1, cores // jobs_at_once(n_jobs, cores))
-
-
-def jobs_at_once(n_jobs: int, cores: int) -> int:
-    """How many jobs joblib runs side by side with ``n_jobs`` (-1 one per core, -2 all cores but one, ...)."""
-    return n_jobs if n_jobs > 0 else max(1, cores + 1 + n_jobs)
 
 
 def main(cfg: DictConfig) -> float:
@@ -200,7 +193,8 @@ def main(cfg: DictConfig) -> float:
                 cfg.seed_run_dirs = [str(d) for d in seed_folders(hydra_cfg.runtime.output_dir, cfg.seeds, cfg.seed)]
             cfg.run_dir = hydra_cfg.runtime.output_dir
         if cfg.torch_threads is None:
-            cfg.torch_threads = default_threads(hydra_cfg.mode == RunMode.MULTIRUN, hydra_cfg.launcher)
+            launch = HydraJobs(hydra_cfg.launcher, multirun=hydra_cfg.mode == RunMode.MULTIRUN)
+            cfg.torch_threads = launch.threads_per_process(jobs.available_cores())
         return run_experiment(cfg)
     except (ConfigError, OmegaConfBaseException) as error:
         _exit(f"Error: {_one_paragraph(error)}", EXIT_CONFIG_ERROR)
@@ -211,7 +205,7 @@ def main(cfg: DictConfig) -> float:
             return math.nan
         _exit(f"Error: {error}", EXIT_DIVERGED)
     except TrainingInterrupted as error:
-        jobs.after_stop(error.exit_code, str(error))  # in a job submitit runs: submitit requeues it
+        stops.after_stop(error.exit_code, str(error))  # in a job submitit runs: submitit requeues it
         _exit(str(error), error.exit_code)
     except RunFilesNotWritten as error:
         _exit(f"Error: {_one_paragraph(error)}", EXIT_NOT_WRITTEN)

@@ -6,12 +6,11 @@ import argparse
 import logging
 import os
 import re
-import signal
 import sys
-import threading
 from pathlib import Path
 
 from sb3_td3x.common.redaction import redact, redact_log_records
+from sb3_td3x.experiment import stops
 from sb3_td3x.sweeps.errors import SweepError
 
 logger = logging.getLogger("sb3_td3x.sweeps")
@@ -92,7 +91,7 @@ def main(argv: list[str] | None = None) -> int:
     except SweepError as err:
         print(redact(f"error: {err}"), file=sys.stderr)
         return 2
-    except KeyboardInterrupt:  # before the worker loop, which holds signals (sb3_td3x.sweeps.signals)
+    except KeyboardInterrupt:  # before the worker loop, which holds signals (sb3_td3x.experiment.stops.HeldSignals)
         print(
             "Interrupted before this worker started a trial: no trial of it is running. Run the same command to continue.",
             file=sys.stderr,
@@ -177,24 +176,20 @@ def _run(args: argparse.Namespace) -> int:
     logger.info(
         "study %s in %s: %d trials wanted, %d there", study_name, study_storage.display_url, n_trials, len(study.trials)
     )
-    in_main_thread = threading.current_thread() is threading.main_thread()  # only there can signals be caught
-    previous = signal.signal(signal.SIGTERM, _raise_keyboard_interrupt) if in_main_thread else None  # scancel: like Ctrl-C
     try:
-        summary = run_worker(
-            study,
-            spec,
-            study_storage,
-            TrialObjective(spec, config_dir, args.overrides, study_dir),
-            n_trials,
-            args.max_consecutive_failures,
-            on_finished=finish,
-        )
+        with stops.interrupting():  # scancel, kill: as Ctrl-C
+            summary = run_worker(
+                study,
+                spec,
+                study_storage,
+                TrialObjective(spec, config_dir, args.overrides, study_dir),
+                n_trials,
+                args.max_consecutive_failures,
+                on_finished=finish,
+            )
     except SweepInterrupted as err:
         print(redact(str(err)), file=sys.stderr)
         return 130
-    finally:
-        if in_main_thread:
-            signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
     if not summary.ran:
         logger.info("study %s already holds its %d trials; pass a larger --n-trials to grow it", study_name, n_trials)
     return 0
@@ -205,7 +200,8 @@ def _launch(
 ) -> int:
     import optuna
 
-    from sb3_td3x.sweeps.launch import load_launcher, submit_workers, wait_for_workers
+    from sb3_td3x.experiment.configs.compose import compose_config
+    from sb3_td3x.sweeps.launch import SweepWorkers, load_launcher
     from sb3_td3x.sweeps.storage import open_storage
     from sb3_td3x.sweeps.worker import check_heartbeat_settings
 
@@ -220,13 +216,11 @@ def _launch(
             "SQLite on a cluster's shared file system is fragile with many workers; prefer --storage postgresql://..."
         )
     worker_argv = _worker_argv(args, _password_to_environment(storage_url), study_dir, config_dir)
-    with _shared_gpu(args, cluster, config_dir, fixed + args.overrides):
-        jobs = submit_workers(cluster, executor_params, args.workers, worker_argv)
-        print(f"submitted {len(jobs)} {cluster} worker job(s): {', '.join(str(job.job_id) for job in jobs)}")
-        print(f"job logs: {study_dir / 'jobs'}; the last worker writes the results into {study_dir}")
-        if not args.wait:
-            return 0
-        ends = wait_for_workers(jobs)  # each job to its real end, through requeues
+    workers = SweepWorkers(cluster, executor_params, args.workers, worker_argv, main, args.wait, study_dir)
+    cfg = compose_config(fixed + args.overrides, config_dir)  # a trial's config, less its searched values (check_composes ran)
+    ends = workers.run(str(cfg.device), bool(cfg.mps), say=print)  # local workers on this machine's GPU: CUDA MPS
+    if ends is None:
+        return 0
     failed = [end for end in ends if "error" in end]
     if failed:
         raise SweepError(
@@ -236,21 +230,6 @@ def _launch(
     codes = [int(end["result"]) for end in ends]
     print(f"workers exited with {codes}")
     return max(codes)
-
-
-def _shared_gpu(args: argparse.Namespace, cluster: str, config_dir: Path, overrides: list[str]):
-    """CUDA MPS for local worker jobs on this machine's GPU (:mod:`sb3_td3x.experiment.mps`), for as long as
-    ``--wait`` waits for them; without ``--wait`` nobody would stop a daemon, so one line says how to start one."""
-    import contextlib
-
-    from sb3_td3x.experiment import mps
-    from sb3_td3x.experiment.schemas import compose_config
-
-    if cluster != "local":
-        return contextlib.nullcontext()
-    cfg = compose_config(overrides, config_dir)  # a trial's config, less its searched values (check_composes ran)
-    unstoppable = None if args.wait else "without --wait nothing would stop it (pass --wait)"
-    return mps.around_launch(args.workers, str(cfg.device), bool(cfg.mps), unstoppable=unstoppable)
 
 
 def _password_to_environment(storage_url: str) -> str:
@@ -300,16 +279,12 @@ def _worker_argv(args: argparse.Namespace, storage_url: str, study_dir: Path, co
     return worker_argv
 
 
-def _raise_keyboard_interrupt(signum: int, frame: object) -> None:
-    raise KeyboardInterrupt
-
-
 def _setup_logging(quiet: bool) -> None:
     handler = logging.StreamHandler(sys.stderr)
     handler.setFormatter(logging.Formatter("[%(asctime)s sweep] %(message)s", datefmt="%H:%M:%S"))
-    # the sweep's own lines, and how the worker jobs are followed (sb3_td3x.experiment.job_watch: one line where
+    # the sweep's own lines, and how the worker jobs are followed (sb3_td3x.experiment.launch.job_watch: one line where
     # sacct does not answer)
-    for name in (logger.name, "sb3_td3x.experiment.job_watch"):
+    for name in (logger.name, "sb3_td3x.experiment.launch.job_watch"):
         logging.getLogger(name).handlers[:] = [handler]
         logging.getLogger(name).setLevel(logging.WARNING if quiet else logging.INFO)
         logging.getLogger(name).propagate = False

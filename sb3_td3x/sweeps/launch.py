@@ -16,6 +16,7 @@ follows each job to its real end (:func:`wait_for_workers`).
 from __future__ import annotations
 
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -23,6 +24,8 @@ import yaml
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
+from sb3_td3x.experiment import stops
+from sb3_td3x.experiment.launch.launcher import Launcher
 from sb3_td3x.sweeps.errors import SweepSpecError
 from sb3_td3x.sweeps.spec import check_readable_file
 
@@ -80,36 +83,76 @@ def load_launcher(path: str | Path, job_folder: Path, job_name: str) -> tuple[st
 
 
 class WorkerJob(Checkpointable):
-    """One sweep worker as a submitit job: ``python -m sb3_td3x.sweeps <argv>``. Checkpointable, so that submitit
-    requeues it at its time limit (what a running trial needs is in its checkpoint and in the study)."""
+    """One sweep worker as a submitit job: ``worker(argv)`` (``python -m sb3_td3x.sweeps <argv>``'s main).
+    Checkpointable, so that submitit requeues it at its time limit (what a running trial needs is in its checkpoint
+    and in the study)."""
+
+    def __init__(self, worker: Callable[[list[str]], int]) -> None:
+        self.worker = worker
 
     def __call__(self, argv: list[str]) -> int:
-        from sb3_td3x.experiment import jobs
-        from sb3_td3x.sweeps.cli import main
-
-        code = main(argv)
-        if jobs.received() is not None:  # stopped by a signal: SLURM (or submitit) says how the job goes on
-            jobs.after_stop(code, "The sweep worker stopped on a signal; its trial was queued again.")
+        code = self.worker(argv)
+        if stops.received() is not None:  # stopped by a signal: SLURM (or submitit) says how the job goes on
+            stops.after_stop(code, "The sweep worker stopped on a signal; its trial was queued again.")
         return code
 
 
-def submit_workers(cluster: str, executor_params: dict[str, Any], n_workers: int, argv: list[str]) -> list[Any]:
-    """Submit ``n_workers`` jobs that each run a sweep worker with ``argv``; return submitit's job handles."""
+class SweepWorkers(Launcher):
+    """``n_workers`` sweep workers as submitit jobs (a :class:`~sb3_td3x.experiment.launch.launcher.Launcher`): local
+    processes side by side on this machine, or SLURM jobs that the cluster places. :meth:`start` submits them and
+    prints where their logs go; with ``wait`` it follows each to its real end and returns :func:`wait_for_workers`'s
+    ends, else None.
+
+    :param worker: what each job runs with ``argv``: the sweep command's main
+    :param study_dir: the study's folder (the jobs' logs are in its ``jobs/``)
+    """
+
+    def __init__(
+        self,
+        cluster: str,
+        executor_params: dict[str, Any],
+        n_workers: int,
+        argv: list[str],
+        worker: Callable[[list[str]], int],
+        wait: bool,
+        study_dir: Path,
+    ) -> None:
+        self.cluster, self.executor_params, self.n_workers, self.argv = cluster, executor_params, n_workers, argv
+        self.worker, self.wait, self.study_dir = worker, wait, study_dir
+        self.not_waiting = None if wait else "without --wait nothing would stop it (pass --wait)"
+
+    @property
+    def side_by_side(self) -> int:
+        return self.n_workers if self.cluster == "local" else 0
+
+    def start(self) -> list[dict[str, Any]] | None:
+        jobs = submit_workers(self.cluster, self.executor_params, self.n_workers, self.argv, self.worker)
+        print(f"submitted {len(jobs)} {self.cluster} worker job(s): {', '.join(str(job.job_id) for job in jobs)}")
+        print(f"job logs: {self.study_dir / 'jobs'}; the last worker writes the results into {self.study_dir}")
+        if not self.wait:
+            return None
+        return wait_for_workers(jobs)  # each job to its real end, through requeues
+
+
+def submit_workers(
+    cluster: str, executor_params: dict[str, Any], n_workers: int, argv: list[str], worker: Callable[[list[str]], int]
+) -> list[Any]:
+    """Submit ``n_workers`` jobs that each run ``worker(argv)``; return submitit's job handles."""
     import submitit
 
-    from sb3_td3x.experiment import job_watch
+    from sb3_td3x.experiment.launch import job_watch
 
     job_watch.install()
     params = dict(executor_params)
     parameters = params.pop("parameters")
     executor = submitit.AutoExecutor(cluster=cluster, **params)
     executor.update_parameters(**parameters)
-    return executor.map_array(WorkerJob(), [list(argv) for _ in range(n_workers)])
+    return executor.map_array(WorkerJob(worker), [list(argv) for _ in range(n_workers)])
 
 
 def wait_for_workers(jobs: list[Any]) -> list[dict[str, Any]]:
     """Wait for each job's real end (through requeues) and print it; returns :func:`job_watch.job_end` of each."""
-    from sb3_td3x.experiment.job_watch import job_end
+    from sb3_td3x.experiment.launch.job_watch import job_end
 
     ends = []
     for job in jobs:
@@ -119,4 +162,3 @@ def wait_for_workers(jobs: list[Any]) -> list[dict[str, Any]]:
         print(f"worker job {end['job']}: {end['state']}{requeued}, {outcome}", file=sys.stdout, flush=True)
         ends.append(end)
     return ends
-

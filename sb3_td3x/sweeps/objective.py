@@ -32,7 +32,7 @@ from omegaconf import DictConfig
 
 from sb3_td3x.common.redaction import redact
 from sb3_td3x.experiment import jobs
-from sb3_td3x.experiment.schemas import compose_config
+from sb3_td3x.experiment.configs.compose import compose_config
 from sb3_td3x.sweeps.errors import SweepSpecError
 from sb3_td3x.sweeps.spec import SweepSpec, override_value
 
@@ -58,7 +58,7 @@ SEED_VALUES, SEED_VALUES_STEP = "seed_values", "seed_values_step"
 def seed_overrides(seeds: list[int], run_dir: Path, resume: bool = False) -> list[str]:
     """A trial's own overrides: its seed (and ``seeds=[...]`` for several), its folder, and ``resume`` for the copy
     of an interrupted trial (several seeds resume from the first seed's folder)."""
-    from sb3_td3x.experiment.checkpoints import seed_folders
+    from sb3_td3x.experiment.run.folder import seed_folders
 
     if len(seeds) == 1:
         return [f"seed={seeds[0]}", f"run_dir={run_dir}"] + ([f"resume={run_dir}"] if resume else [])
@@ -78,8 +78,8 @@ def check_composes(spec: SweepSpec, config_dir: Path, extra_overrides: list[str]
     from hydra.errors import HydraException, OverrideParseException
     from omegaconf.errors import OmegaConfBaseException
 
+    from sb3_td3x.experiment.configs.compose import check_config
     from sb3_td3x.experiment.errors import ConfigError
-    from sb3_td3x.experiment.schemas import check_config
 
     fixed = spec.overrides + extra_overrides
     try:
@@ -280,8 +280,9 @@ class TrialObjective:
         Ctrl-C/SIGTERM and left a complete checkpoint (of its first seed, for several). A copy of a trial failed by
         the heartbeat starts afresh in its own folder instead, since its first worker may still be writing to the
         old one."""
-        from sb3_td3x.experiment.checkpoints import resume_checkpoint, seed_folders
         from sb3_td3x.experiment.errors import ConfigError
+        from sb3_td3x.experiment.run.checkpoints import resume_checkpoint
+        from sb3_td3x.experiment.run.folder import seed_folders
 
         if not trial.user_attrs.get(RESUMABLE):
             return None

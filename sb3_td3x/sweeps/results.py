@@ -88,7 +88,7 @@ def _config_groups(config_dir: Path, overrides: list[str]) -> set[str]:
     """The config groups of the composed config (``algo``, ``env``, ...): their overrides choose a file."""
     from hydra import compose, initialize_config_dir
 
-    import sb3_td3x.experiment.schemas  # noqa: F401
+    import sb3_td3x.experiment.configs.schemas  # noqa: F401
 
     with initialize_config_dir(config_dir=str(config_dir.resolve()), version_base="1.3", job_name="sweep"):
         cfg = compose("config", overrides=overrides, return_hydra_config=True)

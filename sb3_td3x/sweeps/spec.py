@@ -29,7 +29,7 @@ trials share a seed and a trial's seeds follow from its number alone; with K = 1
 the field. At every evaluation the pruner sees the aggregate over the K seeds; the trial's value is the aggregate
 of their final evaluations (for ``eval/best_mean_return``: the best aggregated evaluation). ``seeds_aggregate``
 picks the aggregate: ``mean`` (default) or ``iqm``, the interquartile mean of
-:func:`sb3_td3x.experiment.aggregate.iqm` (the mean of the middle half; for K < 4 it is the mean).
+:func:`sb3_td3x.experiment.analysis.aggregate.iqm` (the mean of the middle half; for K < 4 it is the mean).
 """
 
 from __future__ import annotations
@@ -47,7 +47,7 @@ from omegaconf import MISSING, DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 from optuna.distributions import BaseDistribution, CategoricalDistribution, FloatDistribution, IntDistribution
 
-from sb3_td3x.experiment.statistics import STATISTICS
+from sb3_td3x.experiment.analysis.statistics import STATISTICS
 from sb3_td3x.sweeps.errors import SweepSpecError
 
 #: Metrics a trial can be scored by, with the direction that improves them.

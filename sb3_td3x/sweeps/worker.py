@@ -18,7 +18,7 @@ Three rules keep the study's records true:
   stops the trial at its next evaluation, keeps what it measured as the study's user attribute
   ``late_result_trial_<n>`` (:func:`keep_late_result`) and goes on with the next trial.
 * SIGINT and SIGTERM are held while a trial is created and while its result is recorded
-  (:mod:`sb3_td3x.sweeps.signals`). During training the runner checkpoints and stops; the worker then marks the trial
+  (:class:`sb3_td3x.experiment.stops.HeldSignals`). During training the runner checkpoints and stops; the worker then marks the trial
   FAIL ("interrupted"), queues a copy with the same parameters (which resumes from the checkpoint) and stops with
   :class:`SweepInterrupted`, whose message says what became of the trial.
 """
@@ -31,16 +31,15 @@ import time
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
-from pathlib import Path
 
 import optuna
 from optuna.storages import RetryHeartbeatStaleTrialCallback, fail_stale_trials
 from optuna.trial import FrozenTrial, TrialState
 
 from sb3_td3x.common.redaction import redact
+from sb3_td3x.experiment.stops import HeldSignals
 from sb3_td3x.sweeps.errors import SweepError
 from sb3_td3x.sweeps.objective import RESUMABLE, TrialObjective, TrialResult, worker_id
-from sb3_td3x.sweeps.signals import HeldSignals
 from sb3_td3x.sweeps.spec import SweepSpec
 from sb3_td3x.sweeps.storage import StudyStorage, heartbeat
 
@@ -368,7 +367,3 @@ def _wait_for_others(study: optuna.Study, study_storage: StudyStorage, signals: 
             reported = True
         time.sleep(min(study_storage.heartbeat_interval, WAIT_POLL_S))
     return False
-
-
-def study_dir_for(output_dir: Path, study_name: str) -> Path:
-    return output_dir / study_name

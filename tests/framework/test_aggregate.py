@@ -9,8 +9,8 @@ import pandas as pd
 import pytest
 from omegaconf import OmegaConf
 
-from sb3_td3x.experiment.aggregate import bootstrap_ci, iqm, main
-from sb3_td3x.experiment.statistics import difference_ci, permutation_p_value
+from sb3_td3x.experiment.analysis.aggregate import bootstrap_ci, iqm, main
+from sb3_td3x.experiment.analysis.statistics import difference_ci, permutation_p_value
 
 
 def test_iqm_drops_the_lowest_and_highest_quarter():

@@ -15,14 +15,16 @@ from omegaconf import OmegaConf
 from stable_baselines3 import TD3
 
 from sb3_td3x import DDPG, PRESETS, TD3X
-from sb3_td3x.experiment.algos import algorithm_kwargs, build_algorithm
-from sb3_td3x.experiment.callbacks import PeriodicEvaluation
-from sb3_td3x.experiment.envs import make_eval_env, make_train_env
-from sb3_td3x.experiment.errors import ConfigError
-from sb3_td3x.experiment.loggers import build_logger, wandb_mode
 from sb3_td3x.common.redaction import MASK
+from sb3_td3x.experiment.configs.algos import algorithm_kwargs, build_algorithm
+from sb3_td3x.experiment.configs.compose import check_config, compose_config
+from sb3_td3x.experiment.configs.schemas import CONF_DIR, AlgoConfig, constructor_fields
+from sb3_td3x.experiment.errors import ConfigError
+from sb3_td3x.experiment.run.callbacks import PeriodicEvaluation
+from sb3_td3x.experiment.run.envs import make_eval_env, make_train_env
+from sb3_td3x.experiment.run.folder import public_config
+from sb3_td3x.experiment.run.loggers import build_logger, wandb_mode
 from sb3_td3x.variants import TD3C51, TD3LAP, TD3LayerNorm, TD3NStep
-from sb3_td3x.experiment.schemas import AlgoConfig, CONF_DIR, check_config, compose_config, constructor_fields, public_config
 
 
 # The variants of sb3_td3x.variants, each with its config (docs/variants.md).
@@ -83,7 +85,7 @@ def test_sb3_td3_config_runs_the_td3_settings_and_refuses_td3x_only_switches():
             assert sb3[key] == td3[key], key
     for override in ("algo.target_policy_smoothing=false", "algo.clipped_double_q=false", "algo.critic_learning_rate=3e-4",
                      "algo.compile_update=true", "algo.cuda_graph=false", "algo.cuda_graph=true"):
-        with pytest.raises(ConfigError, match="SB3's TD3 .* has no such option"):
+        with pytest.raises(ConfigError, match=r"TD3 \(algo._target_=stable_baselines3.TD3\) has no such argument"):
             algorithm_kwargs(compose_config(["algo=sb3_td3", override]).algo, n_actions=1)
 
 
@@ -204,12 +206,17 @@ def test_overrides_reach_every_field_the_sweeps_search():
         assert OmegaConf.select(cfg, key) == value, key
 
 
-@pytest.mark.parametrize(
-    "override", ["algo.taau=0.1", "algo.batch_size=abc", "algo.net_arch=wide", "seed=1.5", "logger.tensorboard=maybe"]
-)
+@pytest.mark.parametrize("override", ["algo.batch_size=abc", "algo.net_arch=wide", "seed=1.5", "logger.tensorboard=maybe"])
 def test_a_typo_or_a_wrong_type_fails_while_composing(override):
     with pytest.raises(ConfigCompositionException):
         compose_config([override])
+
+
+def test_a_typo_under_algo_is_refused_against_the_class_signature():
+    """The algo node takes the chosen class's own arguments (tests/framework/test_algo_arguments.py), so a misspelt
+    key composes and the check refuses it, with the argument meant."""
+    with pytest.raises(ConfigError, match=r"algo\.taau=0\.1: TD3X .* takes no argument 'taau'\. Did you mean algo\.tau\?"):
+        check_config(compose_config(["algo.taau=0.1"]))
 
 
 @pytest.mark.parametrize(

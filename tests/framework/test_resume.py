@@ -15,10 +15,10 @@ from pathlib import Path
 import pytest
 import torch
 
-from sb3_td3x.experiment.checkpoints import META_FILE, find_checkpoint, save_checkpoint, verify_checkpoint
-from sb3_td3x.experiment.run_folder import config_for_resume
+from sb3_td3x.experiment.configs.compose import compose_config
 from sb3_td3x.experiment.errors import ConfigError
-from sb3_td3x.experiment.schemas import compose_config
+from sb3_td3x.experiment.run.checkpoints import META_FILE, find_checkpoint, save_checkpoint, verify_checkpoint
+from sb3_td3x.experiment.run.folder import config_for_resume
 
 REPO = Path(__file__).resolve().parents[2]
 # 2000 steps of InvertedPendulum-v5 with small networks, evaluated every 500 steps; the only checkpoint before
@@ -119,7 +119,7 @@ def test_a_checkpoint_cut_between_its_renames_is_still_found(tmp_path):
 
 def test_save_checkpoint_keeps_the_one_before(tmp_path):
     from sb3_td3x import TD3X
-    from sb3_td3x.experiment.envs import make_train_env
+    from sb3_td3x.experiment.run.envs import make_train_env
 
     cfg = compose_config(["env=pendulum"])
     model = TD3X(
@@ -141,8 +141,8 @@ def test_save_checkpoint_keeps_the_one_before(tmp_path):
 @pytest.mark.parametrize("optimize_memory_usage", [False, True])
 def test_the_replay_buffer_is_saved_as_its_filled_rows_and_loaded_whole(tmp_path, optimize_memory_usage):
     from sb3_td3x import TD3X
-    from sb3_td3x.experiment.checkpoints import load_checkpoint
-    from sb3_td3x.experiment.envs import make_train_env
+    from sb3_td3x.experiment.run.checkpoints import load_checkpoint
+    from sb3_td3x.experiment.run.envs import make_train_env
 
     cfg = compose_config(["env=pendulum"])
     kwargs = dict(buffer_size=100_000, learning_starts=10, policy_kwargs={"net_arch": [8]}, seed=0, device="cpu")

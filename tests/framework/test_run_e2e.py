@@ -18,11 +18,11 @@ import torch
 from PIL import Image
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-from sb3_td3x.experiment.checkpoints import META_FILE, MODEL_FILE, REPLAY_BUFFER_FILE, STATE_FILE
-from sb3_td3x.experiment.cli import threads_per_job
+from sb3_td3x.experiment.configs.compose import compose_config
 from sb3_td3x.experiment.errors import TrainingDiverged
+from sb3_td3x.experiment.launch.hydra_jobs import threads_per_job
+from sb3_td3x.experiment.run.checkpoints import META_FILE, MODEL_FILE, REPLAY_BUFFER_FILE, STATE_FILE
 from sb3_td3x.experiment.runner import run_experiment
-from sb3_td3x.experiment.schemas import compose_config
 
 REPO = Path(__file__).resolve().parents[2]
 FAKE_KEY = "0123456789abcdef-not-a-real-wandb-key"

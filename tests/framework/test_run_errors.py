@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from sb3_td3x.experiment.cli import EXIT_CONFIG_ERROR, check_command_line
-from sb3_td3x.experiment.schemas import CONF_DIR
+from sb3_td3x.experiment.configs.schemas import CONF_DIR
 
 REPO = Path(__file__).resolve().parents[2]
 

@@ -22,7 +22,7 @@ import torch
 import yaml
 
 from sb3_td3x.experiment.cli import EXIT_CONFIG_ERROR, EXIT_NOT_WRITTEN
-from sb3_td3x.experiment.lock import RunFolderBusy, RunFolderLock
+from sb3_td3x.experiment.run.lock import RunFolderBusy, RunFolderLock
 
 REPO = Path(__file__).resolve().parents[2]
 RUN = ["debug=smoke", "torch_threads=1", "logger=none", "progress_bar=false", "checkpoint.save_best=false"]
@@ -267,7 +267,7 @@ BAD_INPUTS = {
     "algo.policy=CnnPolicy": "algo.policy=CnnPolicy needs image observations",
     "+env.kwargs.foo=1": "unexpected keyword argument 'foo'",
     "seeds=[]": "seeds=[] must list distinct seeds",
-    "algo.taau=0.1": "Key 'taau' not in 'AlgoConfig'",
+    "algo.taau=0.1": "takes no argument 'taau'. Did you mean algo.tau?",
     "run_dir=<a file>": "is a file, not a folder",
 }
 

@@ -15,8 +15,8 @@ import torch
 from stable_baselines3 import TD3
 
 from sb3_td3x import TD3X
+from sb3_td3x.experiment.configs.compose import compose_config
 from sb3_td3x.experiment.runner import run_experiment
-from sb3_td3x.experiment.schemas import compose_config
 
 # Hopper-v5 with 64-64 networks: 500 random steps, then 500 steps with a gradient step each; evaluations at 500, 1000
 ARGS = ["debug=smoke", "env=hopper", "progress_bar=false", "logger=none", "total_timesteps=1000", "eval.freq=500",

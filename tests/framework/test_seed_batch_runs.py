@@ -20,8 +20,9 @@ import pytest
 import torch as th
 from omegaconf import OmegaConf
 
-from sb3_td3x.experiment.checkpoints import META_FILE, seed_folders
-from sb3_td3x.experiment.schemas import compose_config
+from sb3_td3x.experiment.configs.compose import compose_config
+from sb3_td3x.experiment.run.checkpoints import META_FILE
+from sb3_td3x.experiment.run.folder import seed_folders
 
 REPO = Path(__file__).resolve().parents[2]
 # Pendulum-v1, 600 steps, training from step 150, evaluated every 150 steps on 2 episodes. Short on purpose: the
@@ -234,7 +235,7 @@ def test_a_killed_seed_process_is_one_paragraph_the_others_finish_and_resume_con
 
 def test_seed_processes_one_per_core_on_a_cpu_at_most_one_per_seed(monkeypatch):
     from sb3_td3x.experiment import jobs
-    from sb3_td3x.experiment.seed_processes import groups_of, processes_for
+    from sb3_td3x.experiment.launch.seed_processes import groups_of, processes_for
 
     monkeypatch.setattr(jobs, "available_cores", lambda: 2)
     assert processes_for(compose_config(["seeds=[0,1,2,3]", "device=cpu"])) == 2
@@ -249,7 +250,7 @@ def test_seed_processes_one_per_core_on_a_cpu_at_most_one_per_seed(monkeypatch):
 
 def test_a_seed_process_error_crosses_to_run_py_whole():
     from sb3_td3x.experiment.errors import ConfigError, TrainingDiverged, TrainingInterrupted
-    from sb3_td3x.experiment.seed_processes import _portable, _rebuilt
+    from sb3_td3x.experiment.launch.seed_processes import _portable, _rebuilt
 
     diverged = _rebuilt(_portable(TrainingDiverged("train/critic_loss", float("nan"), 812)))
     assert isinstance(diverged, TrainingDiverged) and "became nan at step 812" in str(diverged)

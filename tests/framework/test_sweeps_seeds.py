@@ -15,8 +15,9 @@ import pytest
 import yaml
 from optuna.trial import TrialState
 
-from sb3_td3x.experiment.checkpoints import LAST, META_FILE, REPLAY_BUFFER_FILE, checkpoint_dir
 from sb3_td3x.experiment.errors import TrainingInterrupted
+from sb3_td3x.experiment.layout import LAST
+from sb3_td3x.experiment.run.checkpoints import META_FILE, REPLAY_BUFFER_FILE, checkpoint_dir
 from sb3_td3x.sweeps.cli import main
 from sb3_td3x.sweeps.objective import DEFAULT_CONFIG_DIR, TrialObjective, compose_config
 from sb3_td3x.sweeps.results import write_results

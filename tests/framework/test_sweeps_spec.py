@@ -13,7 +13,7 @@ from optuna.distributions import CategoricalDistribution, FloatDistribution, Int
 from optuna.storages import RetryHeartbeatStaleTrialCallback
 from optuna.trial import TrialState
 
-from sb3_td3x.experiment.schemas import check_config
+from sb3_td3x.experiment.configs.compose import check_config
 from sb3_td3x.sweeps.cli import main
 from sb3_td3x.sweeps.errors import SweepSpecError
 from sb3_td3x.sweeps.launch import load_launcher

@@ -2,8 +2,8 @@
 
 import json
 
+from sb3_td3x.experiment.configs.compose import compose_config
 from sb3_td3x.experiment.runner import run_experiment
-from sb3_td3x.experiment.schemas import compose_config
 
 SMOKE = ["debug=smoke", "env=inverted_pendulum", "progress_bar=false", "logger=none", "total_timesteps=700"]
 

@@ -10,9 +10,9 @@ import pytest
 from PIL import Image
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
+from sb3_td3x.experiment.configs.compose import compose_config
+from sb3_td3x.experiment.layout import VALUE_FIELDS
 from sb3_td3x.experiment.runner import run_experiment
-from sb3_td3x.experiment.schemas import compose_config
-from sb3_td3x.experiment.value_bias import VALUE_FIELDS
 
 # 300 steps of Pendulum-v1 (64-64 networks), evaluated at 150 and 300 with 2 episodes of 200 steps. Pendulum's episodes
 # are all cut by the time limit: tolerance 0.5 keeps the 132 states with gamma^k <= 0.5 (k >= 69) of each.

@@ -15,9 +15,9 @@ import pytest
 import torch
 import yaml
 
-from sb3_td3x.experiment.checkpoints import META_FILE, REPLAY_BUFFER_FILE
+from sb3_td3x.experiment.run.checkpoints import META_FILE, REPLAY_BUFFER_FILE
 from sb3_td3x.experiment.runner import run_experiment
-from sb3_td3x.experiment.schemas import compose_config
+from sb3_td3x.experiment.configs.compose import compose_config
 
 REPO = Path(__file__).resolve().parents[2]
 VARIANTS = {
@@ -102,13 +102,8 @@ def _last_checkpoint(run_dir: Path) -> dict:
     return {"policy": policy, "buffer": buffer}
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="value_bias.critic_estimates (sb3_td3x/experiment, another change's) reads current_q_values(batch)[0], "
-    "which for a distributional critic is its logits: it must read TD3X.q_value_estimates",
-)
 def test_the_value_bias_of_a_c51_critic_is_its_expected_value():
-    from sb3_td3x.experiment.value_bias import critic_estimates
+    from sb3_td3x.experiment.run.value_bias import critic_estimates
     from sb3_td3x.variants import TD3C51
 
     model = TD3C51("MlpPolicy", "Pendulum-v1", v_min=-10.0, v_max=10.0, policy_kwargs={"net_arch": [16]}, seed=0)

@@ -12,22 +12,22 @@ import subprocess
 
 import pytest
 
-from sb3_td3x.experiment import jobs
-from sb3_td3x.experiment.cli import default_threads
-from sb3_td3x.experiment.job_watch import read_scontrol
-from sb3_td3x.experiment.lock import RunFolderBusy, RunFolderLock
-from sb3_td3x.experiment.run_folder import (
+from sb3_td3x.experiment import jobs, stops
+from sb3_td3x.experiment.configs.compose import compose_config
+from sb3_td3x.experiment.configs.schemas import _records_subdir
+from sb3_td3x.experiment.launch.hydra_jobs import JOBLIB, SUBMITIT_LOCAL, HydraJobs
+from sb3_td3x.experiment.launch.job_watch import read_scontrol
+from sb3_td3x.experiment.run.folder import (
     NEW,
     REQUEUED,
     RESTARTED,
     RunFolder,
     check_new,
-    hydra_records_subdir,
-    hydra_run_dir,
+    folder_to_train_in,
     requeued_folder,
     where_to_start,
 )
-from sb3_td3x.experiment.schemas import compose_config
+from sb3_td3x.experiment.run.lock import RunFolderBusy, RunFolderLock
 
 SLURM_VARS = ("SLURM_JOB_ID", "SLURM_CLUSTER_NAME", "SLURM_RESTART_COUNT", "SLURM_ARRAY_JOB_ID", "SLURM_ARRAY_TASK_ID",
               "SLURM_CPUS_PER_TASK", "SLURM_CPUS_ON_NODE", "SUBMITIT_FOLDER")  # fmt: skip
@@ -84,14 +84,21 @@ def test_a_requeued_job_finds_its_folder_by_its_id_not_by_the_clock(job, tmp_pat
     _session(other, job_id="7", restarts=0)  # another job's run, started later
     new_name = seed_dir / "2026-01-01_11-30-00"  # what ${now} names when the job starts again
     job(0)
-    assert requeued_folder(new_name) is None and hydra_run_dir(None, str(new_name)) == str(new_name)
+    assert requeued_folder(new_name) is None and folder_to_train_in(None, str(new_name)) == new_name
     job(1)
-    assert requeued_folder(new_name) == mine and hydra_run_dir(None, str(new_name)) == str(mine)
+    assert requeued_folder(new_name) == mine and folder_to_train_in(None, str(new_name)) == mine
     assert requeued_folder(mine) == mine  # a fixed run_dir, or a multirun job's folder
-    assert hydra_run_dir(str(other), str(new_name)) == str(other)  # resume= decides
-    assert hydra_records_subdir(None) == ".hydra/requeued_1"
+    assert folder_to_train_in(str(other), str(new_name)) == other  # resume= decides
     job(None)
-    assert requeued_folder(new_name) is None and hydra_records_subdir(None) == ".hydra"
+    assert requeued_folder(new_name) is None
+
+
+def test_hydras_record_of_a_launch_goes_beside_the_first_ones():
+    """conf/config.yaml passes SLURM_RESTART_COUNT (read in the job itself): a requeued job's record, or a resume's,
+    goes beside the first launch's ``.hydra``."""
+    assert _records_subdir(None, 0) == ".hydra" and _records_subdir(None, "0") == ".hydra"
+    assert _records_subdir(None, "2") == ".hydra/requeued_2"
+    assert _records_subdir("runs/x", "0").startswith(".hydra/resumed_")
 
 
 def test_a_job_continues_only_its_own_earlier_start(job, tmp_path):
@@ -137,14 +144,17 @@ def test_a_second_live_owner_is_refused_even_for_the_requeued_job(job, tmp_path)
 
 
 def test_torch_threads_follow_the_jobs_cores(job, monkeypatch):
+    def threads(multirun: bool, launcher: dict) -> int | None:
+        return HydraJobs(launcher, multirun).threads_per_process(8)
+
     job(None)
-    assert default_threads(False, {}) is None
-    assert default_threads(True, {"n_jobs": 1}) is not None
-    assert default_threads(True, {"cpus_per_task": 3, "timeout_min": 60}) == 3
-    assert default_threads(True, {"timeout_min": 60}) is None  # no say of the launcher: torch's default
+    assert threads(False, {}) is None
+    assert threads(True, {"_target_": JOBLIB, "n_jobs": 1}) == 8 and threads(True, {"_target_": JOBLIB, "n_jobs": 2}) == 4
+    assert threads(True, {"_target_": SUBMITIT_LOCAL, "cpus_per_task": 3, "timeout_min": 60}) == 3
+    assert threads(True, {"timeout_min": 60}) is None  # no say of the launcher: torch's default
     job(0)
     monkeypatch.setenv("SLURM_CPUS_PER_TASK", "2")
-    assert default_threads(False, {}) == 2 and default_threads(True, {"n_jobs": -1}) == 2
+    assert threads(False, {}) == 2 and threads(True, {"_target_": JOBLIB, "n_jobs": -1}) == 2
 
 
 def test_scontrol_lines_become_submitits_job_infos():
@@ -162,11 +172,11 @@ def test_outside_a_submitit_job_the_stop_signals_are_sigint_and_sigterm(job, mon
     import signal
 
     job(0)
-    assert jobs.stop_signals() == (signal.SIGINT, signal.SIGTERM)
+    assert stops.stop_signals() == (signal.SIGINT, signal.SIGTERM)
     monkeypatch.setenv("SUBMITIT_FOLDER", "/tmp/x")
-    assert jobs.stop_signals() == (signal.SIGINT, signal.SIGTERM, signal.SIGUSR2)
+    assert stops.stop_signals() == (signal.SIGINT, signal.SIGTERM, signal.SIGUSR2)
     monkeypatch.setenv("SUBMITIT_PREEMPT_SIGNAL", "USR1")
-    assert jobs.requeue_signal() == signal.SIGUSR1
+    assert stops.requeue_signal() == signal.SIGUSR1
 
 
 def test_a_requeued_worker_fails_and_queues_again_the_trial_its_earlier_start_left_running(job, tmp_path):
@@ -212,16 +222,16 @@ def test_submitits_requeue_stopped_by_the_requeue_exits_without_a_result(job, mo
     (SystemExit, as submitit after a requeue), not with submitit's error, which would be read as the job's end."""
     job(0)
     monkeypatch.setenv("SUBMITIT_FOLDER", "/tmp/submitit")
-    stops = jobs._Stops()
-    stops.received = jobs.requeue_signal()
+    told = stops._Stops()
+    told.received = stops.requeue_signal()
 
     def handler(signum, frame):
         raise subprocess.CalledProcessError(returncode, command)
 
-    stops.scheduler_handler = handler
-    monkeypatch.setattr(jobs, "_stops", stops)
+    told.scheduler_handler = handler
+    monkeypatch.setattr(stops, "_stops", told)
     with pytest.raises(ends) as raised:
-        jobs.after_stop(0, "Stopped on SIGUSR2.")
+        stops.after_stop(0, "Stopped on SIGUSR2.")
     if ends is SystemExit:
         assert raised.value.code == -1
         assert "this start exits without a result" in capsys.readouterr().err

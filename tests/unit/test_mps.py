@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from sb3_td3x.experiment import mps
+from sb3_td3x.experiment.launch import mps
 
 
 def test_on_this_machine_the_decision_steps_aside_with_its_reason(tmp_path):
@@ -84,24 +84,25 @@ CONF = Path(__file__).resolve().parents[2] / "conf"
 
 
 def test_a_multirun_on_this_machine_decides_from_its_command_line(fake_control, monkeypatch, capsys):
-    from sb3_td3x.experiment.cli import shared_gpu
+    from sb3_td3x.experiment.cli import check_command_line
+
+    def launch(*args: str) -> None:
+        command = check_command_line(list(args), CONF)
+        with command.launch.shared_gpu(command.device, command.mps):
+            pass
 
     script, log = fake_control
-    with shared_gpu(["seed=0,1"], CONF):  # not a multirun
-        pass
-    with shared_gpu(["-m", "seed=0,1", "device=cpu"], CONF):  # on the CPU
-        pass
-    with shared_gpu(["-m", "seed=0,1", "hydra/launcher=submitit_slurm"], CONF):  # the cluster decides
-        pass
+    launch("seed=0", "debug=smoke")  # not a multirun
+    launch("-m", "seed=0,1", "device=cpu")  # on the CPU
+    launch("-m", "seed=0,1", "hydra/launcher=submitit_slurm", "device=cuda")  # the cluster decides
     assert not log.exists() and capsys.readouterr().err == ""
     monkeypatch.setattr(mps, "has_cuda", lambda: True)  # as on a GPU machine
-    with shared_gpu(["-m", "seed=0,1,2", "hydra.launcher.n_jobs=1"], CONF):  # one job at a time
-        pass
+    launch("-m", "seed=0,1,2", "hydra.launcher.n_jobs=1")  # one job at a time
     assert not log.exists() and capsys.readouterr().err == ""  # nothing to share, nothing to say
-    with shared_gpu(["-m", "seed=0,1,2", "mps=false"], CONF):
-        pass
+    launch("-m", "seed=0,1,2", "mps=false")
     assert not log.exists() and "mps=false" in capsys.readouterr().err
-    with shared_gpu(["-m", "seed=0,1,2", "hydra.launcher.n_jobs=2"], CONF):
+    command = check_command_line(["-m", "seed=0,1,2", "hydra.launcher.n_jobs=2"], CONF)
+    with command.launch.shared_gpu(command.device, command.mps):
         assert mps.running_daemon() is not None
     err = capsys.readouterr().err
     assert "2 processes share the GPU: started an MPS control daemon" in err, err
@@ -109,22 +110,22 @@ def test_a_multirun_on_this_machine_decides_from_its_command_line(fake_control, 
 
 
 def test_local_sweep_workers_share_the_gpu_only_while_wait_waits(fake_control, monkeypatch, capsys):
-    import argparse
+    from sb3_td3x.sweeps.cli import main
+    from sb3_td3x.sweeps.launch import SweepWorkers
 
-    from sb3_td3x.sweeps.cli import _shared_gpu
+    def workers(cluster: str, wait: bool) -> SweepWorkers:
+        return SweepWorkers(cluster, {}, 2, [], main, wait, Path("study"))
 
     script, log = fake_control
     monkeypatch.setattr(mps, "has_cuda", lambda: True)
-    args = argparse.Namespace(workers=2, wait=False)
-    with _shared_gpu(args, "local", CONF, ["env=pendulum"]):  # without --wait nothing would stop a daemon
+    with workers("local", wait=False).shared_gpu("auto", True, say=print):  # without --wait nothing would stop a daemon
         pass
     assert not log.exists() and "without --wait nothing would stop it" in capsys.readouterr().out
-    with _shared_gpu(args, "slurm", CONF, ["env=pendulum"]):  # the cluster decides
+    with workers("slurm", wait=True).shared_gpu("auto", True, say=print):  # the cluster decides
         pass
-    args.wait = True
-    with _shared_gpu(args, "local", CONF, ["env=pendulum", "device=cpu"]):
+    with workers("local", wait=True).shared_gpu("cpu", True, say=print):
         pass
     assert not log.exists()
-    with _shared_gpu(args, "local", CONF, ["env=pendulum"]):
+    with workers("local", wait=True).shared_gpu("auto", True, say=print):
         assert mps.running_daemon() is not None
     assert [line.split()[0] for line in log.read_text().splitlines()] == ["args=-d", "args="]

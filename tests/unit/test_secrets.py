@@ -165,7 +165,7 @@ def test_the_check_names_the_file_and_line_and_never_shows_the_secret(tmp_path, 
 def test_tensorboard_text_and_hyperparameters_are_redacted(tmp_path):
     from stable_baselines3.common.logger import HParam
 
-    from sb3_td3x.experiment.loggers import RedactedTensorBoardOutputFormat
+    from sb3_td3x.experiment.run.loggers import RedactedTensorBoardOutputFormat
 
     output = RedactedTensorBoardOutputFormat(str(tmp_path))
     values = {

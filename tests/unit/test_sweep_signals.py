@@ -1,4 +1,4 @@
-"""A sweep worker's signals while a trial runs (sb3_td3x/sweeps/signals.py): a SIGTERM whose interrupt Python drops,
+"""A sweep worker's signals while a trial runs (sb3_td3x/experiment/stops.py: HeldSignals): a SIGTERM whose interrupt Python drops,
 because the handler ran inside a finalizer, is sent again and stops the trial in its own code.
 
 Run in a child process: signal handlers belong to the main thread, which a test runner (pytest-xdist) may not give
@@ -11,7 +11,7 @@ import pytest
 
 SCRIPT = r'''
 import gc, signal, sys, threading, time
-from sb3_td3x.sweeps.signals import HeldSignals, SignalInterrupt
+from sb3_td3x.experiment.stops import HeldSignals, SignalInterrupt
 
 if sys.argv[1:] == ["second-signal"]:
     # A second signal (SIGINT) lands while the hook starts the thread that sends the first again: its interrupt is

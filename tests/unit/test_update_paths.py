@@ -10,8 +10,8 @@ import torch as th
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.logger import HumanOutputFormat, Logger
 
+from sb3_td3x.experiment.configs.compose import check_config, compose_config, whole_float_problems
 from sb3_td3x.experiment.errors import ConfigError
-from sb3_td3x.experiment.schemas import check_config, compose_config, whole_float_problems
 from sb3_td3x.td3x import TD3X, TD3XCritic, TD3XPolicy, UnsupportedActionSpace
 from sb3_td3x.td3x.hooks import HOOK_NAMES, HOOKS, changed_hooks, reference_class
 from sb3_td3x.td3x.update_paths import compiled

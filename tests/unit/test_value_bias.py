@@ -1,4 +1,4 @@
-"""The critic's value estimate against the true discounted return (sb3_td3x/experiment/value_bias.py), on hand-made
+"""The critic's value estimate against the true discounted return (sb3_td3x/experiment/run/value_bias.py), on hand-made
 episodes: known rewards, a critic that returns known values, exact expected numbers."""
 
 from __future__ import annotations
@@ -22,10 +22,10 @@ from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 from stable_baselines3.td3.policies import TD3Policy
 
 from sb3_td3x import TD3X
-from sb3_td3x.experiment import callbacks
-from sb3_td3x.experiment.callbacks import PeriodicEvaluation
-from sb3_td3x.experiment.value_bias import (
-    VALUE_FIELDS,
+from sb3_td3x.experiment.layout import VALUE_FIELDS
+from sb3_td3x.experiment.run import callbacks
+from sb3_td3x.experiment.run.callbacks import PeriodicEvaluation
+from sb3_td3x.experiment.run.value_bias import (
     Episode,
     cut_at_time_limit,
     discounted_returns,

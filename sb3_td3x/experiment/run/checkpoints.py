@@ -29,7 +29,7 @@ import shutil
 import time
 import warnings
 import zipfile
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -43,11 +43,9 @@ from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecNormalize
 
 from sb3_td3x.common.random_streams import RandomStreams
 from sb3_td3x.experiment.errors import ConfigError, RunFilesNotWritten
+from sb3_td3x.experiment.layout import LAST
 
 log = logging.getLogger(__name__)
-
-LAST = "last"
-BEST = "best"
 
 MODEL_FILE = "model.zip"
 REPLAY_BUFFER_FILE = "replay_buffer.pkl"
@@ -58,21 +56,8 @@ DAMAGED = ".damaged"  # suffix of a checkpoint found damaged, kept for inspectio
 
 
 def checkpoint_dir(run_dir: Path, name: str) -> Path:
+    """The folder of checkpoint ``name`` (:data:`~sb3_td3x.experiment.layout.LAST` or ``BEST``) of ``run_dir``."""
     return run_dir / "checkpoints" / name
-
-
-def seed_folders(run_dir: Path | str, seeds: Sequence[int], seed: int | None = None) -> list[Path]:
-    """The run folder of each of ``seeds`` trained together from ``run_dir``; the one function that names them.
-
-    Where ``run_dir`` has a part ``seed<seed>`` (the folder Hydra made for ``run.py seeds=[...]``, from its first
-    seed), that part names each seed instead: ``runs/hopper/td3/seed3/<date>`` for seed 3, as ``seed=3`` names it.
-    Otherwise (a ``run_dir=`` of the user's, a multirun job, a sweep trial) ``<run_dir>/seed<s>``.
-    """
-    parts = list(Path(run_dir).parts)
-    if seed is None or f"seed{seed}" not in parts:
-        return [Path(run_dir) / f"seed{s}" for s in seeds]
-    at = len(parts) - 1 - parts[::-1].index(f"seed{seed}")
-    return [Path(*parts[:at], f"seed{s}", *parts[at + 1 :]) for s in seeds]
 
 
 def _sibling(target: Path, suffix: str) -> Path:
@@ -180,6 +165,20 @@ def _read_meta(folder: Path) -> dict[str, Any] | None:
     except (OSError, ValueError):
         return None
     return meta if isinstance(meta, dict) else None
+
+
+def checkpoint_step(folder: Path | None) -> int | None:
+    """The step of the checkpoint in ``folder`` (one :func:`find_checkpoint` found); None without a readable one."""
+    meta = None if folder is None else _read_meta(folder)
+    try:
+        return None if meta is None else int(meta["num_timesteps"])
+    except (KeyError, TypeError, ValueError):
+        return None
+
+
+def last_step(run_dir: Path) -> int | None:
+    """The step of the newest ``last`` checkpoint of ``run_dir``; None when it has none."""
+    return checkpoint_step(find_checkpoint(checkpoint_dir(run_dir, LAST)))
 
 
 def checkpoint_config(folder: Path) -> dict[str, Any] | None:

@@ -1,4 +1,4 @@
-"""Pictures of a run: the learning curve PNG and a video of the final policy."""
+"""Pictures of runs: a run's learning curve, and the steps axis every plot of the analysis shares."""
 
 from __future__ import annotations
 
@@ -11,11 +11,6 @@ matplotlib.use("Agg")  # no display needed; set before pyplot is imported
 import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.ticker import EngFormatter
-from omegaconf import DictConfig
-
-from sb3_td3x.experiment.envs import make_render_env
-
-LEARNING_CURVE_PNG = "learning_curve.png"
 
 
 def steps_axis(ax) -> None:
@@ -69,35 +64,3 @@ def _number(value: object) -> float:
         return float(value)  # type: ignore[arg-type]
     except (TypeError, ValueError):
         return float("nan")
-
-
-def record_video(model, env_cfg: DictConfig, video_cfg: DictConfig, path: Path, seed: int) -> Path:
-    """Render ``video_cfg.n_episodes`` episodes of the deterministic policy to ``path`` (GIF or MP4).
-
-    Observation normalisation, when the run used it, is applied with the training statistics. Off-screen
-    MuJoCo rendering needs ``MUJOCO_GL=egl`` or ``MUJOCO_GL=osmesa``.
-    """
-    import imageio.v2 as imageio  # only video runs need it
-
-    env = make_render_env(env_cfg, video_cfg.width, video_cfg.height)
-    vec_normalize = model.get_vec_normalize_env()
-    frames = []
-    try:
-        for episode in range(video_cfg.n_episodes):
-            obs, _ = env.reset(seed=seed + episode)
-            frames.append(env.render())
-            done = False
-            while not done:
-                policy_obs = vec_normalize.normalize_obs(obs) if vec_normalize is not None else obs
-                action, _ = model.predict(policy_obs, deterministic=True)
-                obs, _, terminated, truncated, _ = env.step(action)
-                frames.append(env.render())
-                done = terminated or truncated
-        fps = video_cfg.fps or env.metadata.get("render_fps", 30)
-    finally:
-        env.close()
-    if video_cfg.format == "gif":
-        imageio.mimsave(path, frames, duration=1000 / fps, loop=0)
-    else:
-        imageio.mimsave(path, frames, fps=fps)
-    return path

@@ -7,15 +7,15 @@ seed computes what its lone run computes however the seeds are grouped (bit for 
 speed setting only: ``seed_processes`` (null: one per core of the run, at most one per seed; 1: this process).
 
 This process (``run.py``'s) starts the others (``spawn``: each imports torch afresh) and waits. Each trains its seeds
-with :func:`~sb3_td3x.experiment.runner.train_seed_group`, in the seeds' own folders, which it owns (the lock) as a
+with :func:`~sb3_td3x.experiment.run.seeds.train_seed_group`, in the seeds' own folders, which it owns (the lock) as a
 lone run does; every seed's ``config.yaml`` lists all the seeds and folders, so ``resume=`` with any of them
 continues them all, in processes again. This process then reports as one batch would: the aggregate table, or what
 stopped a seed (an interruption first). Stopping: SIGINT and SIGTERM (and submitit's signal) are passed on to the
 processes, and each checkpoints its seeds; in a SLURM job the scheduler signals every process itself, so nothing is
 passed on. With ``report`` callbacks (a sweep's trials) the seeds train in one process, which reports.
-On a GPU the processes share it through CUDA MPS where the machine has it (:mod:`~sb3_td3x.experiment.mps`, as a
-multirun's jobs do): issue 35 measured 16 Ant seeds on an H200 at 6694 seed-steps/s in 16 processes under MPS
-(1037 without), against 620 in one process (docs/seeds.md); each seed is then exactly its lone run.
+On a GPU the processes share it through CUDA MPS where the machine has it (:mod:`~sb3_td3x.experiment.launch.mps`, as a
+multirun's jobs do): 16 Ant seeds on an H200 trained at 6694 seed-steps/s in 16 processes under MPS (1037 without),
+against 620 in one process (docs/seeds.md); each seed is then exactly its lone run.
 """
 
 from __future__ import annotations
@@ -25,16 +25,16 @@ import logging
 import multiprocessing as mp
 import os
 import queue
-import signal
 import sys
 import traceback
-from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from sb3_td3x.experiment import jobs
+from sb3_td3x.common.redaction import redact_log_records
+from sb3_td3x.experiment import jobs, stops
 from sb3_td3x.experiment.errors import (
     ConfigError,
     RunFilesNotWritten,
@@ -42,6 +42,9 @@ from sb3_td3x.experiment.errors import (
     TrainingDiverged,
     TrainingInterrupted,
 )
+from sb3_td3x.experiment.launch.launcher import Launcher
+from sb3_td3x.experiment.layout import LOG_FORMAT
+from sb3_td3x.experiment.run.seeds import end_of_batch, train_seed_group
 
 log = logging.getLogger(__name__)
 
@@ -66,52 +69,72 @@ def groups_of(n_seeds: int, processes: int) -> list[list[int]]:
     return [list(range(k, n_seeds, processes)) for k in range(processes)]
 
 
-def run_in_processes(cfg: DictConfig, how: str, statistic: str, processes: int) -> float:
-    """``cfg.seeds`` trained in ``processes`` processes (see the module's docstring); returns the seeds'
-    ``statistic`` of their final mean returns, or raises what stopped a seed, as one batch would."""
-    from sb3_td3x.experiment.run_folder import seed_run_dirs
-    from sb3_td3x.experiment.runner import check_batch_resumable, end_of_batch
+class SeedProcesses(Launcher):
+    """``cfg.seeds`` trained in ``processes`` processes (see the module's docstring); :meth:`start` returns the seeds'
+    ``statistic`` of their final mean returns, or raises what stopped a seed, as one batch would.
 
-    seeds, dirs = [int(s) for s in cfg.seeds], seed_run_dirs(cfg)
-    check_batch_resumable(cfg, dirs)
-    groups = groups_of(len(seeds), processes)
-    threads = max(1, _run_cores(cfg) // processes)
-    log.info(
-        "Training seeds %s in %d processes of %d torch thread(s), one per core (seed_processes=%s; "
-        "seed_processes=1 trains them in this one): %s. Each seed computes what its lone run computes.",
-        seeds, processes, threads, cfg.get("seed_processes"),
-        "; ".join(f"seeds {[seeds[i] for i in group]}" for group in groups),
-    )  # fmt: skip
-    context = mp.get_context("spawn")
-    results = context.Queue()
-    config = OmegaConf.to_container(cfg, resolve=True)
-    children = [
-        context.Process(
-            target=_train_group, args=(config, how, group, threads, statistic, k, results), name=f"seeds-{k}"
-        )
-        for k, group in enumerate(groups)
-    ]
+    :param how: how the seeds start in their folders (:func:`~sb3_td3x.experiment.run.folder.where_to_start`)
+    """
+
+    def __init__(self, cfg: DictConfig, how: str, statistic: str, processes: int) -> None:
+        self.cfg, self.how, self.statistic, self.processes = cfg, how, statistic, processes
+
+    @property
+    def side_by_side(self) -> int:
+        return self.processes
+
+    def start(self) -> float:
+        cfg, processes = self.cfg, self.processes
+        seeds, dirs = [int(s) for s in cfg.seeds], [Path(d) for d in cfg.seed_run_dirs]
+        groups = groups_of(len(seeds), processes)
+        threads = self.threads_per_process(_run_cores(cfg)) or 1
+        log.info(
+            "Training seeds %s in %d processes of %d torch thread(s), one per core (seed_processes=%s; "
+            "seed_processes=1 trains them in this one): %s. Each seed computes what its lone run computes.",
+            seeds, processes, threads, cfg.get("seed_processes"),
+            "; ".join(f"seeds {[seeds[i] for i in group]}" for group in groups),
+        )  # fmt: skip
+        context = mp.get_context("spawn")
+        results = context.Queue()
+        config = OmegaConf.to_container(cfg, resolve=True)
+        children = [
+            context.Process(
+                target=_train_group, args=(config, self.how, group, threads, self.statistic, k, results), name=f"seeds-{k}"
+            )
+            for k, group in enumerate(groups)
+        ]
+        with stops.passed_on(children):
+            for child in children:
+                child.start()
+            outcomes = _wait_for(children, results)
+        finals, errors = _outcomes(outcomes, groups, seeds, dirs)
+        return end_of_batch(seeds, dirs, finals, errors, self.statistic)
+
+
+def _wait_for(children: list[Any], results: Any) -> dict[int, tuple[Any, ...]]:
+    """What each process put in ``results`` (``("died", exit code)`` for one that ended without putting anything)."""
     outcomes: dict[int, tuple[Any, ...]] = {}
-    from sb3_td3x.experiment import mps
+    while len(outcomes) < len(children):
+        try:
+            k, outcome = results.get(timeout=0.5)
+            outcomes[k] = outcome
+        except queue.Empty:
+            for k, child in enumerate(children):
+                if k not in outcomes and child.exitcode is not None:
+                    with contextlib.suppress(queue.Empty):  # its result may still be on its way
+                        k2, outcome = results.get(timeout=2.0)
+                        outcomes[k2] = outcome
+                    if k not in outcomes:
+                        outcomes[k] = ("died", child.exitcode)
+    for child in children:
+        child.join()
+    return outcomes
 
-    # On a GPU the processes share it through CUDA MPS (started here where the machine has it and none runs).
-    with mps.around_launch(processes, str(cfg.device), bool(cfg.get("mps", True)), say=log.info), _passing_stops_on(children):
-        for child in children:
-            child.start()
-        while len(outcomes) < len(children):
-            try:
-                k, outcome = results.get(timeout=0.5)
-                outcomes[k] = outcome
-            except queue.Empty:
-                for k, child in enumerate(children):
-                    if k not in outcomes and child.exitcode is not None:
-                        with contextlib.suppress(queue.Empty):  # its result may still be on its way
-                            k2, outcome = results.get(timeout=2.0)
-                            outcomes[k2] = outcome
-                        if k not in outcomes:
-                            outcomes[k] = ("died", child.exitcode)
-        for child in children:
-            child.join()
+
+def _outcomes(
+    outcomes: dict[int, tuple[Any, ...]], groups: list[list[int]], seeds: list[int], dirs: list[Path]
+) -> tuple[dict[int, float], dict[int, BaseException]]:
+    """Each finished seed's final mean return, and what stopped each other one (keyed by seed)."""
     finals: dict[int, float] = {}
     errors: dict[int, BaseException] = {}
     for k, outcome in sorted(outcomes.items()):
@@ -127,46 +150,15 @@ def run_in_processes(cfg: DictConfig, how: str, statistic: str, processes: int) 
                 f"out of memory, SIGKILL?); the other seeds went on. Each seed's folder keeps its last checkpoint: "
                 f"continue them all with python run.py resume={dirs[0]}"
             )))  # fmt: skip
-    return end_of_batch(seeds, dirs, finals, errors, statistic)
-
-
-@contextlib.contextmanager
-def _passing_stops_on(children: list[Any]) -> Iterator[None]:
-    """While the processes run, a stop signal to this one is passed on to them (the first makes each checkpoint and
-    stop; a second Ctrl+C stops them at once, as it stops a lone run). They run in process groups of their own, so
-    this is the only way a signal reaches them; in a SLURM job they stay in this one's, the scheduler signals each
-    process itself, and the signal is only noted here."""
-    previous: dict[int, Any] = {}
-
-    @jobs.ours
-    def handle(signum: int, frame: Any) -> None:
-        jobs.note_signal(signum)
-        if jobs.current_job() is not None:
-            return
-        for child in children:
-            if child.pid is not None and child.exitcode is None:
-                with contextlib.suppress(ProcessLookupError):
-                    os.kill(child.pid, signum)
-
-    for sig in jobs.stop_signals():
-        previous[sig] = signal.signal(sig, handle)
-        jobs.keep_handler(sig, previous[sig])
-    try:
-        yield
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+    return finals, errors
 
 
 def _train_group(config: dict, how: str, indices: list[int], threads: int, statistic: str, k: int, results: Any) -> None:
-    """A process of :func:`run_in_processes`: its seeds trained with ``threads`` torch threads; the outcome put in
+    """A process of :class:`SeedProcesses`: its seeds trained with ``threads`` torch threads; the outcome put in
     ``results`` as ``(k, outcome)``."""
-    from sb3_td3x.common.redaction import redact_log_records
-    from sb3_td3x.experiment.runner import LOG_FORMAT, train_seed_group
-
     if jobs.current_job() is None:
         os.setpgrp()  # a Ctrl+C at the terminal reaches run.py only, which passes it on
-    _stop_when_orphaned()
+    stops.stop_when_orphaned()
     logging.basicConfig(level=logging.INFO, format=LOG_FORMAT, stream=sys.stdout)
     redact_log_records()
     torch.set_num_threads(threads)
@@ -180,23 +172,6 @@ def _train_group(config: dict, how: str, indices: list[int], threads: int, stati
     results.put((k, outcome))
     results.close()
     results.join_thread()
-
-
-def _stop_when_orphaned() -> None:
-    """SIGTERM to this process, once, when ``run.py``'s has ended (killed with SIGKILL, say): its seeds checkpoint
-    and stop instead of training on with nobody to report to. A thread watches the parent's pid (Linux's
-    ``PR_SET_PDEATHSIG`` was seen to signal twice here, and a second SIGTERM stops a run at once)."""
-    import threading
-    import time
-
-    parent = os.getppid()
-
-    def watch() -> None:
-        while os.getppid() == parent:
-            time.sleep(0.5)
-        os.kill(os.getpid(), signal.SIGTERM)
-
-    threading.Thread(target=watch, name="seed-process-orphan-watch", daemon=True).start()
 
 
 def _portable(error: BaseException) -> tuple[Any, ...]:
@@ -223,4 +198,4 @@ def _rebuilt(portable: tuple[Any, ...]) -> BaseException:
     return RuntimeError(f"a seed process failed:\n{values[0]}")
 
 
-__all__ = ["groups_of", "processes_for", "run_in_processes"]
+__all__ = ["SeedProcesses", "groups_of", "processes_for"]

@@ -2,16 +2,17 @@
 
 TD3 (Fujimoto et al. 2018) exists to fix the overestimation of actor-critic values; its Figure 1 plots the critic's
 estimate against the true discounted return of the current policy over training. This module measures the same two
-numbers on the deterministic evaluation episodes that :class:`~sb3_td3x.experiment.callbacks.PeriodicEvaluation`
+numbers on the deterministic evaluation episodes that :class:`~sb3_td3x.experiment.run.callbacks.PeriodicEvaluation`
 runs anyway (no extra episode):
 
 - **Which states.** Every state s_t the evaluation episodes visit, except the last states of an episode cut by a
   time limit (below). Recorded as they run by :class:`EpisodeRecorder`, an ``evaluate_policy`` callback.
 - **The estimate.** The first critic's Q_1(s_t, a_t), with a_t the action the policy took there (for the
   deterministic policy, pi(s_t)), rescaled to the policy's [-1, 1] action space with ``policy.scale_action`` as the
-  replay buffer stores it. For :class:`~sb3_td3x.TD3X` (and subclasses) it is read through the model's own hook
-  ``current_q_values(batch)[0]``: the value that the critic loss regresses onto the TD target, so an overridden
-  ``current_q_values`` or a subclassed critic network (``forward``/``q_values``) is what is measured. The batch is
+  replay buffer stores it. For :class:`~sb3_td3x.TD3X` (and subclasses) it is read through the model's own
+  ``q_value_estimates(batch)[0]``: its ``current_q_values`` hook, the value that the critic loss regresses onto the TD
+  target (so an overridden ``current_q_values`` or a subclassed critic network is what is measured), or a
+  distributional critic's expected value. The batch is
   the evaluation's own transitions (s, a, s', r, terminated), built as the replay buffer would give them. SB3's
   ``TD3`` has no such hook: its ``critic(obs, actions)[0]``, which is what its ``train()`` regresses. (SB3's
   ``q1_forward``, used by the actor loss, is not used: a critic subclass that overrides ``forward`` alone would not be
@@ -35,7 +36,7 @@ runs anyway (no extra episode):
   states were kept. With no state kept (e.g. Pendulum-v1's 200-step episodes, always truncated, with the default
   tolerance), every value is NaN and ``value_states`` 0: when every episode ran to its time limit
   (:func:`cut_at_time_limit`), a consequence of the configuration, which
-  :class:`~sb3_td3x.experiment.callbacks.PeriodicEvaluation` logs once at INFO with :func:`no_state_reason`. ``normalized_bias`` is NaN when |mean G| is below
+  :class:`~sb3_td3x.experiment.run.callbacks.PeriodicEvaluation` logs once at INFO with :func:`no_state_reason`. ``normalized_bias`` is NaN when |mean G| is below
   :data:`NORMALIZATION_FLOOR` times the mean |G|: returns of both signs cancel and the ratio would measure the
   cancellation, not the bias.
 """
@@ -50,7 +51,6 @@ import numpy as np
 import torch as th
 from stable_baselines3.common.type_aliases import DictReplayBufferSamples, ReplayBufferSamples
 
-VALUE_FIELDS = ("value_estimate", "true_value", "overestimation", "normalized_bias", "value_states")
 CHUNK = 16_384  # states per critic forward pass (bounds the memory for image observations)
 NORMALIZATION_FLOOR = 1e-3
 
@@ -231,12 +231,12 @@ def critic_estimates(
     rewards: np.ndarray,
     dones: np.ndarray,
 ) -> np.ndarray:
-    """Q_1(s, a) for each transition, through the model's ``current_q_values`` hook when it has one (TD3X), else
-    ``critic(obs, actions)[0]`` (SB3's TD3). Actions are in the env's scale; they are rescaled as the replay buffer
-    stores them."""
+    """Q_1(s, a) for each transition, through the model's ``q_value_estimates`` when it has one (TD3X: its
+    ``current_q_values`` hook, or a distributional critic's expected value), else ``critic(obs, actions)[0]`` (SB3's
+    TD3). Actions are in the env's scale; they are rescaled as the replay buffer stores them."""
     policy = model.policy
     policy.set_training_mode(False)
-    hook = getattr(model, "current_q_values", None)
+    hook = getattr(model, "q_value_estimates", None)
     values = []
     with th.no_grad():
         for start in range(0, len(actions), CHUNK):

@@ -1,4 +1,4 @@
-"""SB3 callbacks of an experiment: periodic evaluation, checkpoints, divergence check, progress bar, stop on signal.
+"""SB3 callbacks of a run: periodic evaluation, checkpoints, divergence check, progress bar.
 
 Everything that looks at or saves the model runs at a *rollout boundary* (``_on_rollout_start``, after the
 previous ``train()`` and before the next environment step). Inside ``_on_step`` the environment has stepped
@@ -11,13 +11,13 @@ evaluations and checkpoints wait for the end of the episode.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import logging
 import math
 import os
-import signal
-import threading
+import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -28,17 +28,22 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.vec_env import VecEnv, sync_envs_normalization
 from tqdm import tqdm
+from tqdm.contrib.logging import logging_redirect_tqdm
 
-from sb3_td3x.experiment import jobs
-from sb3_td3x.experiment.checkpoints import BEST, LAST, checkpoint_dir, save_checkpoint
 from sb3_td3x.experiment.errors import TrainingDiverged, TrainingInterrupted
-from sb3_td3x.experiment.value_bias import VALUE_FIELDS, Episode, EpisodeRecorder, cut_at_time_limit, measure_value_bias
+from sb3_td3x.experiment.layout import (
+    BEST,
+    EVALUATION_FIELDS,
+    EVALUATIONS_CSV,
+    EVALUATIONS_JSON,
+    LAST,
+    VALUE_FIELDS,
+)
+from sb3_td3x.experiment.run.checkpoints import checkpoint_dir, save_checkpoint
+from sb3_td3x.experiment.run.folder import write_atomically
+from sb3_td3x.experiment.run.value_bias import Episode, EpisodeRecorder, cut_at_time_limit, measure_value_bias
 
 log = logging.getLogger(__name__)
-
-EVALUATIONS_CSV = "evaluations.csv"
-EVALUATIONS_JSON = "evaluations.json"
-EVALUATION_FIELDS = ("timesteps", "mean_return", "std_return", "mean_length", "wall_time")
 
 
 class PeriodicEvaluation(BaseCallback):
@@ -50,7 +55,7 @@ class PeriodicEvaluation(BaseCallback):
     (progress bar, best checkpoint, the caller's ``report``) in order.
 
     With ``value_bias`` (``eval.value_bias``, on by default) the same episodes also measure the critic's value
-    estimate against the true discounted return (:mod:`sb3_td3x.experiment.value_bias`): the columns
+    estimate against the true discounted return (:mod:`sb3_td3x.experiment.run.value_bias`): the columns
     ``value_estimate``, ``true_value``, ``overestimation``, ``normalized_bias`` and ``value_states``, logged as
     ``eval/<column>``. Off, neither the columns nor the metrics exist. Rows of an earlier run without them (a resumed
     run) are written with empty cells.
@@ -83,6 +88,8 @@ class PeriodicEvaluation(BaseCallback):
         self.history: list[dict[str, float]] = []
         self.timing: dict[str, float] = {}  # seconds of the last evaluation: episodes, value measurement
         self._said_value_reasons: set[str] = set()  # kinds of NaN already logged
+        #: why value columns were NaN (once per kind: the step, whether the configuration explains it, the reason)
+        self.value_notes: list[dict[str, Any]] = []
 
     @property
     def last_timesteps(self) -> int:
@@ -155,7 +162,8 @@ class PeriodicEvaluation(BaseCallback):
         return result
 
     def _say_value_reason(self, values: dict[str, float], episodes: list[Episode], reason: str) -> None:
-        """Log why a value column is NaN, once per run and kind.
+        """Log why a value column is NaN, once per run and kind; :attr:`value_notes` keeps the whole reason (and what to
+        change) for the run's ``summary.json``.
 
         No state kept because every episode ran to the evaluation env's time limit, which is shorter than a state
         needs for its return to be known to the tolerance (Pendulum-v1's 200 steps with gamma 0.99, the README's first
@@ -167,8 +175,13 @@ class PeriodicEvaluation(BaseCallback):
         if kind in self._said_value_reasons:
             return
         self._said_value_reasons.add(kind)
+        self.value_notes.append({"step": int(self.num_timesteps), "expected": expected, "why": reason})
         if expected:
-            log.info("Value measurement at step %d: no value columns (NaN): %s (said once per run)", self.num_timesteps, reason)
+            log.info(
+                "Value measurement at step %d: no value columns, the episodes end at their time limit too soon "
+                "(summary.json says why)",
+                self.num_timesteps,
+            )
         else:
             log.warning("Value measurement at step %d gives NaN: %s (said once per run)", self.num_timesteps, reason)
 
@@ -195,8 +208,8 @@ class Checkpointer(BaseCallback):
     """Write ``checkpoints/last`` every ``freq`` steps, at the end of training and when a stop is requested;
     ``checkpoints/best`` when an evaluation beats the best so far (use :meth:`on_evaluation` as a listener).
 
-    A stop (SIGINT/SIGTERM, see :class:`StopOnSignal`) is honoured at the next rollout boundary: the checkpoint is
-    written, then :class:`TrainingInterrupted` is raised out of ``learn()``.
+    A stop (SIGINT/SIGTERM: :class:`~sb3_td3x.experiment.stops.StopOnSignal`) is honoured at the next rollout
+    boundary: the checkpoint is written, then :class:`TrainingInterrupted` is raised out of ``learn()``.
 
     :param experiment_state: returns the picklable state saved next to the model (evaluation history, ...)
     :param config: the run's resolved config, kept in each checkpoint's ``meta.json`` (what a resume is checked against)
@@ -285,6 +298,7 @@ class ProgressBar(BaseCallback):
             dynamic_ncols=True,
             mininterval=0.5,
         )
+        _console_through_bars.open()
 
     def _on_step(self) -> bool:
         assert self.bar is not None
@@ -301,51 +315,34 @@ class ProgressBar(BaseCallback):
         if self.bar is not None:
             self.bar.close()
             self.bar = None
+            _console_through_bars.close()
 
 
-class StopOnSignal:
-    """While active, SIGINT and SIGTERM (and, in a job submitit runs on SLURM, its time-out signal) ask the
-    checkpointers (one per seed of a batch) to save and stop instead of killing the process.
+class _ConsoleThroughBars:
+    """While a progress bar is open in this process (one per seed of a batch), the console's log lines go through
+    ``tqdm.write`` (tqdm's ``logging_redirect_tqdm``), which clears the bars, writes the line and draws them again: a
+    line never cuts a bar. The console handlers come back when the last bar closes; a log file is left as it is."""
 
-    The first signal restores the previous handlers, so a second Ctrl+C stops at once (the last periodic
-    checkpoint is still there). Outside the main thread (Hydra's joblib launcher uses worker processes, whose
-    main thread is fine; a thread pool is not) signals cannot be caught and this does nothing. What a job does once
-    its checkpoint is written (submitit's requeue) is :func:`sb3_td3x.experiment.jobs.after_stop`'s.
-    """
+    def __init__(self) -> None:
+        self.bars = 0
+        self.redirect: contextlib.ExitStack | None = None
 
-    def __init__(self, *checkpointers: Checkpointer) -> None:
-        self.checkpointers = checkpointers  # one per seed in a seed batch
-        self.previous: dict[int, Any] = {}
+    def open(self) -> None:
+        self.bars += 1
+        consoles = [handler for handler in logging.root.handlers if _is_console(handler)]
+        if self.redirect is None and consoles:  # no console handler (a script without logging): nothing to redirect
+            self.redirect = contextlib.ExitStack()
+            self.redirect.enter_context(logging_redirect_tqdm())
 
-    def __enter__(self) -> StopOnSignal:
-        if threading.current_thread() is threading.main_thread():
-            for sig in jobs.stop_signals():
-                self.previous[sig] = signal.signal(sig, self._handle)
-                jobs.keep_handler(sig, self.previous[sig])
-        return self
-
-    @jobs.ours
-    def _handle(self, signum: int, frame: Any) -> None:
-        self._restore()
-        jobs.note_signal(signum)
-        for checkpointer in self.checkpointers:
-            checkpointer.request_stop(signal.Signals(signum).name, 128 + signum)
-
-    def _restore(self) -> None:
-        for sig, handler in self.previous.items():
-            signal.signal(sig, handler)
-        self.previous = {}
-
-    def __exit__(self, *exc: object) -> None:
-        self._restore()
+    def close(self) -> None:
+        self.bars = max(0, self.bars - 1)
+        if self.bars == 0 and self.redirect is not None:
+            self.redirect.close()
+            self.redirect = None
 
 
-def write_atomically(path: Path, text: str) -> None:
-    """Replace ``path`` with ``text`` whole: a reader (or a crash) sees the old file or the new one, never a part."""
-    tmp = path.with_name(path.name + ".tmp")
-    try:
-        tmp.write_text(text)
-        os.replace(tmp, path)
-    except OSError:
-        tmp.unlink(missing_ok=True)
-        raise
+def _is_console(handler: logging.Handler) -> bool:
+    return isinstance(handler, logging.StreamHandler) and getattr(handler, "stream", None) in (sys.stdout, sys.stderr)
+
+
+_console_through_bars = _ConsoleThroughBars()

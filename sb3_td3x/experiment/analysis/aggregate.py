@@ -1,6 +1,6 @@
 """Aggregate finished runs into a table and learning-curve plots, with 95% bootstrap confidence intervals.
 
-    python -m sb3_td3x.experiment.aggregate runs/multirun/2026-01-01_12-00-00 [more folders] [--stat iqm] [--out DIR]
+    python -m sb3_td3x.experiment.analysis.aggregate runs/multirun/2026-01-01_12-00-00 [more folders] [--stat iqm] [--out DIR]
 
 Every run folder below the given paths (a folder with ``evaluations.csv`` and ``config.yaml``) is grouped by
 (env id, algo name); the seeds of a group are aligned on the evaluation steps they all have. The statistic over
@@ -41,17 +41,15 @@ import numpy as np
 import pandas as pd
 from omegaconf import OmegaConf
 
-from sb3_td3x.experiment.callbacks import EVALUATIONS_CSV
-from sb3_td3x.experiment.plotting import steps_axis
-from sb3_td3x.experiment.run_folder import CONFIG_FILE
-from sb3_td3x.experiment.statistics import (  # noqa: F401  (iqm and mean: this module's API too)
+from sb3_td3x.experiment.analysis.plots import steps_axis
+from sb3_td3x.experiment.analysis.statistics import (  # noqa: F401  (iqm and mean: this module's API too)
     STATISTICS,
     difference_ci,
     iqm,
     mean,
     permutation_p_value,
 )
-from sb3_td3x.experiment.value_bias import VALUE_FIELDS
+from sb3_td3x.experiment.layout import CONFIG_FILE, EVALUATIONS_CSV, VALUE_FIELDS
 
 # The value columns aggregated over seeds (value_states is a count, kept per run only)
 VALUE_METRICS = ("value_estimate", "true_value", "overestimation", "normalized_bias")
@@ -285,7 +283,7 @@ def plot_curves(curves: dict[tuple[str, str], pd.DataFrame], stat: str, out_dir:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m sb3_td3x.experiment.aggregate", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m sb3_td3x.experiment.analysis.aggregate", description=__doc__.split("\n\n")[0])
     parser.add_argument("paths", nargs="+", type=Path, help="folders holding run folders (searched recursively)")
     parser.add_argument("--stat", choices=sorted(STATISTICS), default="mean", help="statistic over seeds (default: mean)")
     parser.add_argument("--out", type=Path, default=None, help="output folder (default: the first path)")

@@ -1,7 +1,9 @@
-"""Environment factory: the training env, the separately seeded evaluation env, and the env that renders videos."""
+"""Environment factory: the training env, the separately seeded evaluation env, and the env that renders the video of
+the final policy (:func:`record_video`)."""
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
@@ -59,3 +61,35 @@ def make_render_env(env_cfg: DictConfig, width: int, height: int) -> gym.Env:
         return gym.make(env_cfg.id, render_mode="rgb_array", width=width, height=height, **kwargs)
     except TypeError:
         return gym.make(env_cfg.id, render_mode="rgb_array", **kwargs)
+
+
+def record_video(model, env_cfg: DictConfig, video_cfg: DictConfig, path: Path, seed: int) -> Path:
+    """Render ``video_cfg.n_episodes`` episodes of the deterministic policy to ``path`` (GIF or MP4).
+
+    Observation normalisation, when the run used it, is applied with the training statistics. Off-screen
+    MuJoCo rendering needs ``MUJOCO_GL=egl`` or ``MUJOCO_GL=osmesa``.
+    """
+    import imageio.v2 as imageio  # only video runs need it
+
+    env = make_render_env(env_cfg, video_cfg.width, video_cfg.height)
+    vec_normalize = model.get_vec_normalize_env()
+    frames = []
+    try:
+        for episode in range(video_cfg.n_episodes):
+            obs, _ = env.reset(seed=seed + episode)
+            frames.append(env.render())
+            done = False
+            while not done:
+                policy_obs = vec_normalize.normalize_obs(obs) if vec_normalize is not None else obs
+                action, _ = model.predict(policy_obs, deterministic=True)
+                obs, _, terminated, truncated, _ = env.step(action)
+                frames.append(env.render())
+                done = terminated or truncated
+        fps = video_cfg.fps or env.metadata.get("render_fps", 30)
+    finally:
+        env.close()
+    if video_cfg.format == "gif":
+        imageio.mimsave(path, frames, duration=1000 / fps, loop=0)
+    else:
+        imageio.mimsave(path, frames, fps=fps)
+    return path

@@ -1,7 +1,7 @@
 """Metric loggers: SB3's logger writing TensorBoard events, plus Weights & Biases when configured.
 
 Every metric goes through SB3's ``Logger`` (``train/*`` and ``rollout/*`` from the algorithm, ``eval/*`` from
-:class:`~sb3_td3x.experiment.callbacks.PeriodicEvaluation`); W&B is one more output format of it, so TensorBoard
+:class:`~sb3_td3x.experiment.run.callbacks.PeriodicEvaluation`); W&B is one more output format of it, so TensorBoard
 and W&B always show the same numbers. The W&B API key is read by ``wandb`` itself (``WANDB_API_KEY`` or
 ``wandb login``) and never passes through the config. What reaches TensorBoard as text or hyper-parameters, and
 W&B as config or command line, goes through :func:`~sb3_td3x.common.redaction.redact` first.
