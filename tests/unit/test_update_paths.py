@@ -84,6 +84,29 @@ def test_a_hook_set_after_the_first_train_is_compiled_with_the_rest(tmp_path):
     assert model.update_path == "compiled" and len(calls) == 10
 
 
+@pytest.mark.parametrize("kind", ["forward", "forward_pre", "full_backward"])
+def test_a_module_hook_registered_after_the_first_compiled_train_runs(kind):
+    """A hook added to a module after the update was compiled runs at every later step, as eagerly, or the update
+    steps aside with the reason: never a graph that silently leaves it out (torch 2.13 skips the guards on module
+    hooks unless told not to)."""
+
+    def trained(compile_update):
+        model = small(compile_update=compile_update, batch_size=16)
+        model.learn(30)
+        calls = []
+        hook = {"forward": lambda module, args, out: calls.append(1),
+                "forward_pre": lambda module, args: calls.append(1),
+                "full_backward": lambda module, grad_in, grad_out: calls.append(1)}[kind]
+        getattr(model.critic.qf0[0], f"register_{kind}_hook")(hook)
+        model.learn(10, reset_num_timesteps=False)
+        return model, len(calls)
+
+    (eager, eager_calls), (compiled, compiled_calls) = trained(False), trained(True)
+    assert eager_calls > 0 and compiled_calls == eager_calls, (eager_calls, compiled_calls, compiled.update_reason)
+    for a, b in zip(compiled.policy.parameters(), eager.policy.parameters()):
+        th.testing.assert_close(a, b, rtol=1e-4, atol=1e-5)
+
+
 class PrintingTD3X(TD3X):
     """A hook Dynamo cannot put in one graph: ``.item()`` and a print."""
 
