@@ -5,6 +5,7 @@ from typing import Any
 import torch as th
 
 from sb3_td3x import TD3X
+from sb3_td3x.td3x.optim import apply_gradients, gradients
 
 
 class GradClipTD3X(TD3X):
@@ -18,11 +19,13 @@ class GradClipTD3X(TD3X):
         super().__init__(*args, **kwargs)
 
     def optimize_critic(self, loss: th.Tensor) -> None:
-        self.critic.optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        # Returns the norm before clipping as a tensor: no host-device synchronisation.
-        th.nn.utils.clip_grad_norm_(self.critic.parameters(), self.max_grad_norm)
-        self.critic.optimizer.step()
+        optimizer = self.critic.optimizer
+        grads = gradients(optimizer, loss)  # d loss / d p for each parameter the optimizer steps
+        # clip_grad_norm_'s rule: scale every gradient by max_norm / norm where the norm is larger. All tensor
+        # operations (no .item()): no host-device synchronisation, and the step compiles with the rest of the update.
+        norm = th.linalg.vector_norm(th.stack([th.linalg.vector_norm(g) for g in grads]))
+        scale = (self.max_grad_norm / (norm + 1e-6)).clamp(max=1.0)
+        apply_gradients(optimizer, [g * scale for g in grads])
 
 
 if __name__ == "__main__":

@@ -96,7 +96,7 @@ class SeedBatch:
     :param seeds: the seeds, distinct
     :param collect_threads: threads the seeds collect in, at most one per seed (see the module's docstring); 1, the
         default: one after the other, in the caller's thread
-    :param batched_actions: pi(s) of all seeds in one batched product per layer: None (default) on a GPU, True also
+    :param batched_actions: pi(s) of all seeds in one vmapped call of the actor: None (default) on a GPU, True also
         on a CPU (there to float rounding, not bit for bit: each seed's own 2-D products are its lone run's), False
         never
     """

@@ -15,7 +15,7 @@ class TD3LayerNorm(TD3X):
 
     One hook changes, step 3's :meth:`~sb3_td3x.TD3X.q_network`: SB3's ``create_mlp`` with
     ``post_linear_modules=[nn.LayerNorm]``, which puts a LayerNorm after each hidden Linear and none after the output.
-    The actor is TD3's. The networks are not SB3's ReLU MLPs, so the hooks run as written with autograd.
+    The actor is TD3's. The update runs as the stock one does: the hooks as written, compiled on a long run.
     """
 
     def q_network(self, input_dim: int, net_arch: list[int], activation_fn: type[nn.Module]) -> nn.Module:

@@ -272,6 +272,7 @@ def load_example(path: Path) -> tuple[ModuleType, type[TD3X]]:
     spec = importlib.util.spec_from_file_location(f"docs_example_{path.stem}", path)
     assert spec is not None and spec.loader is not None
     module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # as an imported file is: torch.compile looks its globals up by module name
     spec.loader.exec_module(module)
     classes = [
         obj
@@ -354,6 +355,23 @@ def test_gradient_clipping_example_clips_the_critic_gradient():
     model.optimize_critic(loss)
     norm = th.linalg.vector_norm(th.stack([p.grad.norm() for p in model.critic.parameters() if p.grad is not None]))
     assert norm.item() <= 1e-3 * (1 + 1e-4)
+
+
+def test_gradient_clipping_example_compiles_in_one_graph(monkeypatch: pytest.MonkeyPatch):
+    """The page says the clipped step, written with gradients() and apply_gradients(), compiles with the rest of the
+    update: with compile_update=True its update is one graph (Dynamo's graph run by AOTAutograd's eager kernels,
+    ``aot_eager``, to stay fast), not the eager update that stepped aside."""
+    from sb3_td3x.td3x.update_paths.compiled import CompiledUpdate
+
+    monkeypatch.setattr(CompiledUpdate, "backend", "aot_eager")
+    cls = _example_class("gradient_clipping")
+    model = cls("MlpPolicy", "Pendulum-v1", policy_kwargs={"net_arch": [16]}, learning_starts=50, batch_size=32, seed=0,
+                max_grad_norm=0.05, compile_update=True)  # fmt: skip
+    before = [p.detach().clone() for p in model.critic.parameters()]
+    model.learn(80)
+    assert model.update_path == "compiled", model.update_reason
+    assert all(th.isfinite(p).all() for p in model.policy.parameters())
+    assert any(not th.equal(a, b) for a, b in zip(before, model.critic.parameters()))
 
 
 # The griffe extension that renders reST markup of docstrings (docs/_griffe/sphinx_markup.py) ------------------------

@@ -36,7 +36,7 @@ def test_the_readme_links_lead_to_files_and_headings():
 
 def test_the_python_examples_run(tmp_path, monkeypatch):
     """The first example as written (its learn() cut to 300 steps); the override of the second trains with its own
-    loss, through autograd, as the README says."""
+    loss, run as written (eagerly: a short run)."""
     first, override = python_blocks()
     monkeypatch.chdir(tmp_path)
     learn = TD3X.learn
