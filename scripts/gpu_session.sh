@@ -4,15 +4,16 @@
 # packages the machine's image lacks, into .whl/), then call the device tool's run with
 #   command: bash scripts/gpu_session.sh measure     carry: [".whl", ".gl"]     timeout_s: 600
 # and the other parts in later sessions, in this order:
-# measure:    issue 35's numbers: `python run.py env=ant`'s update path (graphs by default), one seed of TD3X's
-#             default (graphs) and cuda_graph=False against SB3's and SBX's TD3 (Ant-v5, HalfCheetah-v5), and 16 Ant
-#             seeds every way (one SeedBatch, TD3X and SBX processes, with and without MPS; one SB3 process).
+# measure:    `python run.py env=ant`'s update path, one seed of TD3X's default of a long run (the hooks compiled
+#             inside torch.compile's CUDA graphs) and of cuda_graph=True (gradient_step captured whole) against SB3's
+#             and SBX's TD3 (Ant-v5, HalfCheetah-v5), and 16 Ant seeds every way (one SeedBatch, TD3X and SBX
+#             processes, with and without MPS; one SB3 process).
 # suite:      the whole test suite on the GPU machine (device "auto" is CUDA there), W&B tests left out.
 # tests_cuda: the GPU test layer and the tests that name CUDA, graphs or seed batches (a shorter check).
 # seeds16:    16 Ant seeds every way with SB3's processes too (the measure part leaves them out for time).
 # sb3_seeds:  16 separate SB3 processes on the GPU.
 # Everything goes to $OUT (at most 8 files come back). Each step has its own time limit, so that a slow one does not
-# take the others' results with it. First run: 2026-11-23 (H100), see docs/performance.md.
+# take the others' results with it. First run: 2026-11-23 (H100); the compiled default not yet run on a GPU (docs/performance.md).
 set -uo pipefail
 cd "$(dirname "$0")/.."
 part=${1:-measure}
@@ -35,21 +36,21 @@ export PYTHONPATH=/tmp/site:$PWD MUJOCO_GL=egl PYTHONUNBUFFERED=1
 left() { echo $(( ${1} - (SECONDS - start) )); }  # seconds left of this part's budget
 
 if [ "$part" = measure ]; then
-  # Issue 35's three measurements, in one call of under 10 minutes (a session's 15 minutes of device time hold one):
-  # 0. `python run.py env=ant` takes the graph path by itself on the GPU: a short run with the env's own settings
-  # (10k random steps, then 300 gradient steps); its update line goes to $OUT (the run folder stays in /tmp).
+  # Three measurements, in one call of under 10 minutes (a session's 15 minutes of device time hold one):
+  # 0. `python run.py env=ant`'s update line on the GPU (a short run: 10k random steps, then 300 gradient steps, so
+  # eager; the folder stays in /tmp).
   timeout 75 python3 run.py env=ant total_timesteps=10300 eval.freq=100000 logger=none progress_bar=false \
     run_dir=/tmp/ant_default > /tmp/ant_default.txt 2>&1
   echo "run.py env=ant rc=$?; $(grep -o 'update: [a-z_]* ([^;]*' /tmp/ant_default.txt | head -1)" > "$OUT/ant_default.txt"
   cat "$OUT/ant_default.txt"
-  # 1. One seed: TD3X's default (auto: CUDA graphs for these stock models), then cuda_graph=False (the eager path,
-  # the default before), each against SB3's and SBX's TD3 in one process, chunks alternated.
+  # 1. One seed: TD3X's default of a long run (auto: the compiled update in torch.compile's CUDA graphs), then
+  # cuda_graph=True (gradient_step captured whole), each against SB3's and SBX's TD3 in one process, chunks alternated.
   timeout 110 python3 benchmarks/throughput.py --env Ant-v5 HalfCheetah-v5 --chunks 2 --chunk-steps 1000 \
     --warmup 1000 --json "$OUT/throughput_graph.json" > "$OUT/throughput.txt" 2>&1
-  echo "throughput default (auto cuda_graph) rc=$?" >> "$OUT/throughput.txt"
+  echo "throughput default (compiled in CUDA graphs) rc=$?" >> "$OUT/throughput.txt"
   timeout 100 python3 benchmarks/throughput.py --env Ant-v5 HalfCheetah-v5 --chunks 2 --chunk-steps 1000 \
-    --warmup 1000 --td3x cuda_graph=false --json "$OUT/throughput.json" >> "$OUT/throughput.txt" 2>&1
-  echo "throughput cuda_graph=false rc=$?" >> "$OUT/throughput.txt"
+    --warmup 1000 --td3x cuda_graph=true --json "$OUT/throughput.json" >> "$OUT/throughput.txt" 2>&1
+  echo "throughput cuda_graph=true rc=$?" >> "$OUT/throughput.txt"
   # 2. Sixteen Ant seeds every way, the issue's goals first: 16 TD3X and 16 SBX processes under CUDA MPS and one
   # SeedBatch (pi(s) batched, the seeds in turn); then the processes without MPS and the batch collecting in 16
   # threads. One SB3 process is each call's baseline. Each measurement's line is printed as it ends (a call cut by its
@@ -93,8 +94,8 @@ else
   timeout 470 python3 -m pytest -q -p no:cacheprovider -n 14 --timeout 300 -rfEs --durations=10 -k "not wandb" tests \
     > "$OUT/suite.txt" 2>&1
   echo "suite rc=$?" >> "$OUT/suite.txt"
-  # run.py on the GPU with its defaults (CUDA graphs, by auto), killed halfway and resumed; the update line says why.
-  { timeout 60 python3 run.py debug=smoke env=hopper logger=tensorboard progress_bar=false \
+  # run.py on the GPU, compiled in CUDA graphs (compile_update=true), killed halfway and resumed; the update line says why.
+  { timeout 60 python3 run.py debug=smoke env=hopper logger=tensorboard progress_bar=false algo.compile_update=true \
       run_dir=/tmp/cuda_graph_run total_timesteps=3000 checkpoint.freq=1000 & pid=$!; sleep 40; kill -TERM $pid
     wait $pid; echo "run.py cuda_graph stopped rc=$?"
     timeout 120 python3 run.py resume=/tmp/cuda_graph_run; echo "run.py cuda_graph resumed rc=$?"

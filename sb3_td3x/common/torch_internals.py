@@ -12,13 +12,13 @@ import importlib
 import torch as th
 
 _OPTIMIZER_HOOKS = ("_global_optimizer_pre_hooks", "_global_optimizer_post_hooks")
+_OPTIMIZER_MODULE = importlib.import_module("torch.optim.optimizer")
 
 
 def global_optimizer_hooks() -> bool | None:
     """Whether a global optimizer step hook is registered (``register_optimizer_step_pre_hook``...), None when this
     torch keeps them where this function cannot see."""
-    module = importlib.import_module("torch.optim.optimizer")
-    registries = [getattr(module, name, None) for name in _OPTIMIZER_HOOKS]
+    registries = [getattr(_OPTIMIZER_MODULE, name, None) for name in _OPTIMIZER_HOOKS]
     if not all(isinstance(registry, dict) for registry in registries):
         return None
     return any(registries)

@@ -100,6 +100,7 @@ class _Group:
     steps: list[th.Tensor]
     lr: th.Tensor  # 0-d, refreshed before each call
     options: dict[str, Any]
+    lr_value: float  # what lr holds
 
 
 @dataclass
@@ -136,29 +137,49 @@ def why_not_traceable(optimizer: th.optim.Optimizer) -> str | None:
 def prepare(optimizer: th.optim.Optimizer) -> None:
     """Make ready, eagerly, what a compiled :func:`minimize` of ``optimizer`` reads (:data:`PREPARED`): its trainable
     parameters and state tensors, its options, its learning rates as 0-d tensors (refreshed at each call), or the
-    reason it cannot be stepped inside a graph."""
+    reason it cannot be stepped inside a graph. Called before every compiled step: what it made is kept while the
+    optimizer keeps the same parameters, state tensors and options (the graph's inputs stay the same objects)."""
     why = why_not_traceable(optimizer)
     if why is not None:
         optimizer.__dict__[PREPARED] = why
         return
     old = optimizer.__dict__.get(PREPARED)
-    groups = []
-    for k, group in enumerate(optimizer.param_groups):
-        params = [p for p in group["params"] if p.requires_grad]
-        states = [optimizer.state[p] for p in params]
-        lr = old.groups[k].lr if isinstance(old, _CompiledStep) and k < len(old.groups) else th.zeros((), device=params[0].device)
-        lr.fill_(float(group["lr"]))
-        beta1, beta2 = group["betas"]
-        options = {
-            "beta1": beta1, "beta2": beta2, "eps": group["eps"], "weight_decay": group["weight_decay"],
-            "amsgrad": group["amsgrad"], "maximize": group["maximize"],
-            "decoupled_weight_decay": bool(group.get("decoupled_weight_decay", isinstance(optimizer, th.optim.AdamW))),
-        }  # fmt: skip
-        groups.append(_Group(
-            params, [st["exp_avg"] for st in states], [st["exp_avg_sq"] for st in states],
-            [st["max_exp_avg_sq"] for st in states] if group["amsgrad"] else [], [st["step"] for st in states], lr, options,
-        ))  # fmt: skip
-    optimizer.__dict__[PREPARED] = _CompiledStep([p for g in groups for p in g.params], groups)
+    groups = [_group(optimizer, group, old.groups[k] if isinstance(old, _CompiledStep) and k < len(old.groups) else None)
+              for k, group in enumerate(optimizer.param_groups)]  # fmt: skip
+    if not isinstance(old, _CompiledStep) or any(new is not kept for new, kept in zip(groups, old.groups)):
+        optimizer.__dict__[PREPARED] = _CompiledStep([p for g in groups for p in g.params], groups)
+
+
+def _group(optimizer: th.optim.Optimizer, group: dict[str, Any], old: _Group | None) -> _Group:
+    """What a compiled step reads of ``group``: ``old`` itself (its learning rate refreshed) where nothing else
+    changed, else made anew."""
+    params = [p for p in group["params"] if p.requires_grad]
+    states = [optimizer.state[p] for p in params]
+    beta1, beta2 = group["betas"]
+    options = {
+        "beta1": beta1, "beta2": beta2, "eps": group["eps"], "weight_decay": group["weight_decay"],
+        "amsgrad": group["amsgrad"], "maximize": group["maximize"],
+        "decoupled_weight_decay": bool(group.get("decoupled_weight_decay", isinstance(optimizer, th.optim.AdamW))),
+    }  # fmt: skip
+    lr = float(group["lr"])
+    same = (
+        old is not None
+        and options == old.options
+        and len(params) == len(old.params)
+        and all(p is q for p, q in zip(params, old.params))
+        and all(st["exp_avg"] is m and st["step"] is n for st, m, n in zip(states, old.exp_avgs, old.steps))
+    )
+    if same:
+        if lr != old.lr_value:
+            old.lr.fill_(lr)
+            old.lr_value = lr
+        return old  # type: ignore[return-value]
+    lr_tensor = th.full((), lr, device=params[0].device)
+    return _Group(
+        params, [st["exp_avg"] for st in states], [st["exp_avg_sq"] for st in states],
+        [st["max_exp_avg_sq"] for st in states] if group["amsgrad"] else [], [st["step"] for st in states],
+        lr_tensor, options, lr,
+    )  # fmt: skip
 
 
 def has_state(optimizer: th.optim.Optimizer) -> bool:
