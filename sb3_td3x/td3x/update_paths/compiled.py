@@ -26,7 +26,6 @@ from collections.abc import Callable
 from typing import Any
 
 import torch as th
-from torch._inductor import config as inductor_config
 
 from sb3_td3x.td3x.optim import PREPARED, has_state, prepare
 from sb3_td3x.td3x.hooks import changed_hooks
@@ -203,19 +202,26 @@ class _CompileSettings:
     draws random numbers with torch's generator, as eagerly (the same smoothing noise as the eager update, from the
     same seed). Set and put back as attributes: ``config.patch`` costs a tenth of a millisecond per call."""
 
-    SETTINGS = (
-        (th._dynamo.config, "trace_autograd_ops", True),
-        (th._dynamo.config, "skip_nnmodule_hook_guards", False),
-        (inductor_config, "fallback_random", True),
-    )
+    @staticmethod
+    @functools.cache
+    def settings() -> tuple[tuple[Any, str, Any], ...]:
+        # Imported at the first compiled step, not with the package: Dynamo and Inductor take 2 s to import.
+        from torch._inductor import config as inductor_config
+
+        return (
+            (th._dynamo.config, "trace_autograd_ops", True),
+            (th._dynamo.config, "skip_nnmodule_hook_guards", False),
+            (inductor_config, "fallback_random", True),
+        )
 
     def __enter__(self) -> None:
-        self.saved = [getattr(config, name) for config, name, _ in self.SETTINGS]
-        for config, name, value in self.SETTINGS:
+        settings = self.settings()
+        self.saved = [getattr(config, name) for config, name, _ in settings]
+        for config, name, value in settings:
             setattr(config, name, value)
 
     def __exit__(self, *exc: Any) -> None:
-        for (config, name, _), value in zip(self.SETTINGS, self.saved):
+        for (config, name, _), value in zip(self.settings(), self.saved):
             setattr(config, name, value)
 
 
