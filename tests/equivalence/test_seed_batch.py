@@ -9,6 +9,7 @@ generator; and they must differ when the seeds' random streams are shared or swa
 rounding, and the test sees a stale or misplaced batched row.
 """
 
+import functools
 import threading
 import time
 
@@ -24,7 +25,7 @@ from sb3_td3x.common.random_streams import RandomStreams
 from sb3_td3x.variants import TD3C51, TD3LAP, TD3LayerNorm, TD3NStep
 
 SEEDS = (0, 1, 2)
-STEPS = 450  # 350 gradient steps after learning_starts=100
+STEPS = 300  # 200 gradient steps after learning_starts=100
 
 
 class HuberTD3X(TD3X):
@@ -62,8 +63,15 @@ def factory(cls=TD3X, noise=NormalActionNoise, **kwargs):
     return make
 
 
-def lone_runs(make, steps=STEPS):
-    return [make(seed).learn(steps) for seed in SEEDS]
+def lone_runs(make, steps=STEPS, seeds=SEEDS):
+    return [make(seed).learn(steps) for seed in seeds]
+
+
+@functools.cache
+def default_lone_runs(steps=STEPS):
+    """The lone runs of ``factory()``'s model, trained once per length for every test that compares with them (the
+    tests only read them)."""
+    return lone_runs(factory(), steps)
 
 
 def differences(batch, lone):
@@ -101,15 +109,16 @@ def assert_same_runs(batch, lone, exact=True):
 )
 def test_a_batch_computes_the_lone_runs_bit_for_bit(cls, noise, swaps):
     make = factory(cls, noise)
-    lone = lone_runs(make)
-    caller = np.random.get_state()
-    batch = SeedBatch(make, SEEDS).learn(STEPS)
-    assert batch.collection == "one seed after the other (collect_threads=1); pi(s) per seed"  # a CPU's default
     compiled = cls is LongRunTD3X  # the long run's default: each lone run and each seed of the batch compile the update
+    seeds = SEEDS[:2] if compiled else SEEDS  # two seeds show it: each compile costs seconds
+    lone = default_lone_runs() if (cls, noise) == (TD3X, NormalActionNoise) else lone_runs(make, seeds=seeds)
+    caller = np.random.get_state()
+    batch = SeedBatch(make, seeds).learn(STEPS)
+    assert batch.collection == "one seed after the other (collect_threads=1); pi(s) per seed"  # a CPU's default
     assert all(m.update_path == ("compiled" if compiled else "eager") for m in [*lone, *batch])
-    assert all(("compile_update=None (auto): a run of 350 training steps" in m.update_reason) == compiled for m in batch)
+    assert all(("compile_update=None (auto): a run of 200 training steps" in m.update_reason) == compiled for m in batch)
     # The default model's rounds swap no global state; a user's class or noise runs with the seed's streams installed.
-    assert batch._globals == [swaps] * len(SEEDS)
+    assert batch._globals == [swaps] * len(seeds)
     assert all(m._n_updates == STEPS - 100 for m in batch)
     assert_same_runs(batch, lone)
     # The caller's global random state is as it was.
@@ -136,7 +145,7 @@ def test_a_batch_of_each_variant_computes_its_lone_runs_bit_for_bit(cls, kwargs)
 
 def test_the_test_fails_when_the_math_differs():
     """A batch of a model whose loss differs from the lone runs' is seen."""
-    lone = lone_runs(factory())
+    lone = default_lone_runs()
     batch = SeedBatch(factory(HuberTD3X), SEEDS).learn(STEPS)
     with pytest.raises(AssertionError):
         assert_same_runs(batch, lone)
@@ -145,7 +154,7 @@ def test_the_test_fails_when_the_math_differs():
 @pytest.mark.parametrize("broken", ["one_shared_stream", "streams_swapped"])
 def test_shared_or_mixed_random_streams_are_detected(broken, monkeypatch):
     make = factory()
-    lone = lone_runs(make, steps=200)
+    lone = default_lone_runs(200)
     if broken == "one_shared_stream":  # every seed draws from the global generators, one after the other
         monkeypatch.setattr(RandomStreams, "detach", lambda self: self)
         batch = SeedBatch(make, SEEDS)
@@ -167,11 +176,11 @@ def test_learn_goes_on_and_each_seed_is_a_full_model(tmp_path):
     lone = []
     for seed in SEEDS:
         model = make(seed)
-        model.learn(250)
-        model.learn(200, reset_num_timesteps=False)
+        model.learn(200)
+        model.learn(100, reset_num_timesteps=False)
         lone.append(model)
     batch = SeedBatch(make, SEEDS)
-    batch.learn(250)
+    batch.learn(200)
     calls = [[] for _ in SEEDS]
 
     class Count(BaseCallback):
@@ -183,8 +192,8 @@ def test_learn_goes_on_and_each_seed_is_a_full_model(tmp_path):
             calls[self.i].append(self.model.num_timesteps)
             return True
 
-    batch.learn(200, callback=[Count(i) for i in range(len(SEEDS))], reset_num_timesteps=False)
-    assert calls == [list(range(251, 451))] * len(SEEDS)
+    batch.learn(100, callback=[Count(i) for i in range(len(SEEDS))], reset_num_timesteps=False)
+    assert calls == [list(range(201, 301))] * len(SEEDS)
     assert_same_runs(batch, lone)
     paths = batch.save(tmp_path)
     loaded = TD3X.load(paths[1])
@@ -254,7 +263,7 @@ def test_a_failing_seed_stops_alone_with_keep_going():
     batch.learn(200, callback=[None, Fail(), None], keep_going=True)
     assert list(batch.errors) == [1] and [m.num_timesteps for m in batch] == [200, 150, 200]
     # The other two go on per seed after seed 1 stops (2 of 3 seeds train each round) and still compute their lone runs.
-    assert_same_runs([batch[0], batch[2]], [make(0).learn(200), make(2).learn(200)])
+    assert_same_runs([batch[0], batch[2]], [default_lone_runs(200)[0], default_lone_runs(200)[2]])
 
 
 def test_bad_input_is_refused_with_a_clear_message():
@@ -425,7 +434,7 @@ def test_the_batched_actions_test_fails_when_the_rows_are_mixed_up(monkeypatch):
         return served
 
     monkeypatch.setattr(seed_batch, "prefetch_actions", mixed_up)
-    lone = lone_runs(factory(), steps=200)
+    lone = default_lone_runs(200)
     batch = SeedBatch(factory(), SEEDS, batched_actions=True).learn(200)
     with pytest.raises(AssertionError):
         assert_same_runs(batch, lone, exact=False)
