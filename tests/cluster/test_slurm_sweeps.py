@@ -52,7 +52,7 @@ def test_a_requeued_worker_resumes_its_trial_and_wait_reports_the_real_end(slurm
     sweep = OmegaConf.load(SMOKE)
     sweep.pruner = {"_target_": "optuna.pruners.NopPruner"}  # no trial may end before the requeue
     sweep.overrides = [o for o in sweep.overrides if not o.startswith(("total_timesteps", "checkpoint.freq"))]
-    sweep.overrides += ["total_timesteps=3000", "checkpoint.freq=500"]
+    sweep.overrides += ["total_timesteps=2000", "checkpoint.freq=500"]
     sweep_file = tmp_path / "sweep.yaml"
     OmegaConf.save(sweep, sweep_file)
     proc = _sweep(slurm, pg_url, tmp_path, sweep_file, study, "--n-trials", "2", workers=1)
@@ -83,7 +83,7 @@ def test_a_requeued_worker_resumes_its_trial_and_wait_reports_the_real_end(slurm
     assert [s["start"] for s in sessions] == ["new", "resume"]
     assert [s["job"]["restarts"] for s in sessions] == [0, 1]
     assert sessions[1]["resumed_from"] == "checkpoints/last" and sessions[1]["at_step"] >= 500
-    assert json.loads((first_trial / "summary.json").read_text())["total_timesteps"] == 3000
+    assert json.loads((first_trial / "summary.json").read_text())["total_timesteps"] == 2000
     assert not (tmp_path / "runs" / study / "trial_0001").exists()
     logs = "".join(p.read_text() for p in (tmp_path / "runs" / study / "jobs").glob("*/*_log.err"))
     assert f"trial 1 resumes the run of the trial it repeats, in {first_trial}" in logs
