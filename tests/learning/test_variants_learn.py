@@ -6,7 +6,8 @@ Short runs, so that the four stay near a minute together on 2 cores: seed 0 ends
 EPYC, 2026-11; random actions score about -1200). n-step returns learn sooner: seeds 0 and 1 reach -137 and -205 at
 3,500 steps (-157 and -210 at 3,000); LAP and LayerNorm critics are still near -1000 at 4,000 steps, learning from 500.
 One seed shows that a variant learns, not that it learns better or worse than TD3: docs/variants.md says what the
-results pages can show. The variants' math is held to the papers' and authors' code by tests/unit/test_variants.py and tests/equivalence/test_n_step_returns.py.
+results pages can show. The variants' math is held to the papers' and authors' code by tests/unit/test_variants.py and
+tests/equivalence/test_n_step_returns.py.
 """
 
 import gymnasium as gym
