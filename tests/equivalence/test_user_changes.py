@@ -436,11 +436,18 @@ def test_a_users_change_is_compiled_as_written(name, monkeypatch):
         assert_far_beyond_rounding(compiled, eager, name)
 
 
-@pytest.mark.parametrize("name", ["stock-defaults", "critic-forward-subclass", "critic_loss-overridden",
-                                  "target_policy_smoothing_noise-overridden", "tanh-activation",
-                                  "noise-annealed-with-the-updates"])  # fmt: skip
+#: The cases Inductor compiles (the other tests run Dynamo's graphs with ``aot_eager``): each distinct graph costs about
+#: 34 s of Inductor's compile on a cold cache (CI starts cold), 4 s warm, so they are few. The stock update (the default
+#: of every long CPU run: its graph is shared with test_auto_compiles_a_long_run, which the cache then finds), and one
+#: hook override whose graph has a lowering the stock graph lacks (smooth_l1_loss and its backward). Changes that only
+#: add pointwise operations (a scaled forward, an activation, a noise scale) give Inductor nothing new: the catalogue
+#: above checks that Dynamo captures them.
+INDUCTOR_CASES = ["stock-defaults", "critic_loss-overridden"]
+
+
+@pytest.mark.parametrize("name", INDUCTOR_CASES)
 def test_inductor_compiles_a_users_change_as_written(name):
-    """The real compiled update (Inductor's kernels) on the stock update and on a few changes."""
+    """The real compiled update (Inductor's kernels) on the stock update and on a change."""
     case = {**CASES, **STOCK}[name]
     compiled = train_updates(case, updates=20, compile_update=True)
     eager = train_updates(case, updates=20, compile_update=False)
@@ -464,7 +471,10 @@ def test_a_users_change_reaches_collection_and_changes_learning(name):
 
 
 @pytest.mark.parametrize("name", list(STOCK))
-def test_the_stock_setups_compile_and_match_the_hooks(name):
+def test_the_stock_setups_compile_and_match_the_hooks(name, monkeypatch):
+    """Dynamo's graphs of the stock set-ups (``aot_eager``, as the catalogue; Inductor compiles stock-defaults in
+    test_inductor_compiles_a_users_change_as_written) compute what the hooks compute, and collection is SB3's."""
+    monkeypatch.setattr(CompiledUpdate, "backend", "aot_eager")
     compiled = train_updates(STOCK[name], updates=20, compile_update=True)
     eager = train_updates(STOCK[name], updates=20, compile_update=False)
     assert compiled.update_path == "compiled" and eager.update_path == "eager"
@@ -476,26 +486,31 @@ def test_the_stock_setups_compile_and_match_the_hooks(name):
 
 def test_auto_compiles_a_long_run_and_it_trains_what_the_hooks_train(monkeypatch):
     """compile_update=None (auto) on a run long enough (here: every run) compiles the update, the default of a long
-    run on a CPU; a different update (another tau) is seen by the test."""
+    run on a CPU (Inductor: the graph of test_inductor_compiles_a_users_change_as_written[stock-defaults]); the
+    comparison sees a different update (another tau, eagerly: no other graph to compile)."""
     monkeypatch.setattr(TD3X, "compile_auto_min_steps", 0)
     auto = train_updates(STOCK["stock-defaults"], updates=20)
     reference = train_updates(STOCK["stock-defaults"], updates=20, compile_update=False)
     assert auto.update_path == "compiled" and auto.update_compiled
     assert_same_weights(auto, reference)
-    broken = train_updates(STOCK["stock-defaults"], updates=20, tau=0.02)
+    other_tau = train_updates(STOCK["stock-defaults"], updates=20, compile_update=False, tau=0.02)
     with pytest.raises(AssertionError):
-        assert_same_weights(broken, reference)
+        assert_same_weights(auto, other_tau)
 
 
-@pytest.mark.parametrize("name", ["stock-defaults", "critic-forward-subclass"])
-def test_the_compiled_bf16_update_follows_the_eager_bf16_update(name):
-    case = {**CASES, **STOCK}[name]
+def test_the_compiled_bf16_update_follows_the_eager_bf16_update():
+    """bf16 products compiled by Inductor (the stock update: a change's bf16 graph adds nothing the fp32 cases above do
+    not show) follow the eager bf16 update far more closely than fp32 does, so a compiled update that dropped autocast
+    would fail: after 20 updates, compiled to eager bf16 8e-6, fp32 to bf16 2.7e-3 (AMD EPYC, 2026-11)."""
+    case = STOCK["stock-defaults"]
     with pytest.warns(UserWarning) if _bf16_warns() else contextlib.nullcontext():
-        compiled = train_updates(case, bf16=True, compile_update=True)
-        eager = train_updates(case, bf16=True, compile_update=False)
+        compiled = train_updates(case, updates=20, bf16=True, compile_update=True)
+        eager = train_updates(case, updates=20, bf16=True, compile_update=False)
     assert compiled.update_path == "compiled" and eager.update_path == "eager"
-    # bf16 products (8 bits of mantissa): Inductor and eager autocast round differently.
-    assert max_difference(compiled, eager) < 0.02
+    fp32 = train_updates(case, updates=20, compile_update=False)
+    # bf16 products (8 bits of mantissa): Inductor and eager autocast round differently, far less than fp32 does.
+    rounding, fp32_apart = max_difference(compiled, eager), max_difference(eager, fp32)
+    assert rounding < 0.05 * fp32_apart, f"compiled bf16 is {rounding:.2e} from eager bf16, fp32 {fp32_apart:.2e}"
 
 
 def _bf16_warns() -> bool:

@@ -22,7 +22,7 @@ from sb3_td3x.experiment.configs.compose import check_config, compose_config
 from sb3_td3x.experiment.errors import ConfigError
 
 REPO = Path(__file__).resolve().parents[2]
-SMOKE = ["debug=smoke", "progress_bar=false", "logger=none", "total_timesteps=600", "algo.learning_starts=200",
+SMOKE = ["debug=smoke", "progress_bar=false", "logger=none", "total_timesteps=300", "algo.learning_starts=100",
          "eval.freq=300", "eval.n_episodes=1"]  # fmt: skip
 
 MYMODULE = '''
@@ -119,8 +119,8 @@ def test_run_py_refuses_a_misspelt_argument_before_writing_anything(tmp_path):
 
 
 def test_a_users_subclass_trains_with_its_argument_and_config_yaml_records_it(tmp_path):
-    """From ``PYTHONPATH``; then from the folder run.py starts in; a misspelt argument of it, and a value of the
-    wrong type, are refused before anything is written."""
+    """From ``PYTHONPATH``; then from the folder run.py starts in; a misspelt argument of it is refused before anything
+    is written (a value of the wrong type is refused by the same check: test_the_arguments_are_the_chosen_classs...)."""
     (tmp_path / "mymodule.py").write_text(MYMODULE)
     run_dir = tmp_path / "run"
     result = run_py(*SMOKE, "algo=td3", "algo._target_=mymodule.MyTD3", "+algo.my_arg=0.5", f"run_dir={run_dir}",
@@ -134,17 +134,16 @@ def test_a_users_subclass_trains_with_its_argument_and_config_yaml_records_it(tm
         model = MyTD3.load(run_dir / "checkpoints" / "last" / "model.zip")
     finally:
         sys.path.remove(str(tmp_path))
-    assert model.my_arg == 0.5 and model.num_timesteps == 600
+    assert model.my_arg == 0.5 and model.num_timesteps == 300
 
     here = tmp_path / "here"
     result = run_py(*SMOKE, "algo._target_=mymodule.MyTD3", "algo.my_arg=0.25", f"run_dir={here}", cwd=tmp_path)
     assert result.returncode == 0, result.stderr[-3000:]
     assert OmegaConf.load(here / "config.yaml").algo.my_arg == 0.25
 
-    for wrong, needle in [("+algo.my_ag=0.5", "Did you mean algo.my_arg?"), ("+algo.my_arg=fast", "takes my_arg as a float")]:
-        refused = tmp_path / wrong.split("=")[0].lstrip("+")
-        result = run_py(*SMOKE, "algo._target_=mymodule.MyTD3", wrong, f"run_dir={refused}", pythonpath=tmp_path)
-        assert_refused(result, refused, needle)
+    refused = tmp_path / "refused"
+    result = run_py(*SMOKE, "algo._target_=mymodule.MyTD3", "+algo.my_ag=0.5", f"run_dir={refused}", pythonpath=tmp_path)
+    assert_refused(result, refused, "algo.my_ag=0.5", "Did you mean algo.my_arg?")
 
 
 # A sweep --------------------------------------------------------------------------------------------------------------

@@ -53,35 +53,35 @@ class _StopHere(Exception):
 
 
 def test_a_lap_run_stopped_and_resumed_is_the_run_never_stopped(tmp_path):
-    """The priorities are part of the replay buffer's checkpoint: a TD3LAP run stopped at step 1000 and resumed ends
-    with the evaluations, the weights and the priorities (every level of the sum tree, the priority of new
-    transitions, the update count) of the run never stopped, to the bit."""
-    overrides = ["algo=td3_lap", "debug=smoke", "env=inverted_pendulum", "checkpoint.freq=100000", "progress_bar=false",
-                 "torch_threads=1", "logger=none"]  # fmt: skip
+    """The priorities are part of the replay buffer's checkpoint: a TD3LAP run stopped at step 800 and resumed ends
+    with the evaluations (one of them after the resume), the weights and the priorities (every level of the sum tree,
+    the priority of new transitions, the update count) of the run never stopped, to the bit."""
+    overrides = ["algo=td3_lap", "debug=smoke", "env=inverted_pendulum", "total_timesteps=1200", "eval.freq=400",
+                 "checkpoint.freq=100000", "progress_bar=false", "torch_threads=1", "logger=none"]  # fmt: skip
     reference = tmp_path / "reference"
     run_experiment(compose_config([*overrides, f"run_dir={reference}"]))
 
-    def stop_at_1000(step: int, value: float) -> None:
-        if step >= 1000:
+    def stop_at_800(step: int, value: float) -> None:
+        if step >= 800:
             raise _StopHere(step)
 
     stopped = tmp_path / "stopped"
     with pytest.raises(_StopHere):
-        run_experiment(compose_config([*overrides, f"run_dir={stopped}"]), report=stop_at_1000)
-    assert json.loads((stopped / "checkpoints" / "last" / META_FILE).read_text())["num_timesteps"] == 1000
+        run_experiment(compose_config([*overrides, f"run_dir={stopped}"]), report=stop_at_800)
+    assert json.loads((stopped / "checkpoints" / "last" / META_FILE).read_text())["num_timesteps"] == 800
     run_experiment(compose_config([*overrides, f"resume={stopped}"]))
     assert _curve(stopped) == _curve(reference)
     ends = [_last_checkpoint(run) for run in (reference, stopped)]
     for name, tensor in ends[0]["policy"].items():
         torch.testing.assert_close(ends[1]["policy"][name], tensor, rtol=0, atol=0, msg=name)
     buffers = [end["buffer"] for end in ends]
-    assert buffers[0].prioritized and int(buffers[0].priority_updates) == 1500  # 2000 steps, learning from 500
+    assert buffers[0].prioritized and int(buffers[0].priority_updates) == 700  # 1200 steps, learning from 500
     levels = [b.priorities.sums + b.priorities.maxima[1:] for b in buffers]
     for k, (a, b) in enumerate(zip(*levels)):
         assert torch.equal(a, b), f"priority tree level {k}"
     assert torch.equal(buffers[0].max_priority, buffers[1].max_priority)
     assert torch.equal(buffers[0].priority_updates, buffers[1].priority_updates)
-    assert (buffers[0].priorities.leaves[:2000] > 1.0).any()  # priorities were written, not only the initial 1
+    assert (buffers[0].priorities.leaves[:1200] > 1.0).any()  # priorities were written, not only the initial 1
 
 
 def _curve(run_dir: Path) -> list[tuple[str, ...]]:

@@ -1,5 +1,8 @@
-"""TD3X learns: Pendulum-v1 reaches a mean deterministic return of at least -250 within 8,000 steps (TD3's 400-300
-networks, the default update, one seed)."""
+"""TD3X learns: Pendulum-v1 reaches a mean deterministic return of at least -250 within 7,000 steps (TD3's 400-300
+networks and batch of 100 (Fujimoto et al. 2018), the default update, one seed).
+
+Seeds 0 and 1 end at -146 and -203 after 7,000 steps, -132 and -194 after 8,000, -504 and -521 after 5,000 (2-core AMD
+EPYC, 2026-11); random actions score about -1200."""
 
 import gymnasium as gym
 import numpy as np
@@ -29,10 +32,11 @@ def test_td3x_learns_pendulum(seed, monkeypatch):
         "MlpPolicy",
         env,
         learning_starts=1_000,
+        batch_size=100,
         action_noise=NormalActionNoise(np.zeros(1), 0.1 * np.ones(1)),
         seed=seed,
     )
-    model.learn(total_timesteps=8_000)
+    model.learn(total_timesteps=7_000)
     assert model.update_path == "compiled"
     eval_env = Monitor(gym.make("Pendulum-v1"))
     eval_env.reset(seed=10_000 + seed)

@@ -37,6 +37,14 @@ def small(policy="MlpPolicy", **kwargs) -> TD3X:
     return TD3X(policy, "Pendulum-v1", **kwargs)
 
 
+@pytest.fixture
+def dynamo_graphs_only(monkeypatch):
+    """The compiled update's graphs run by AOTAutograd's eager kernels (``aot_eager``): what these tests check (the
+    choice, Dynamo's guards and recompiles) is Dynamo's, and each graph Inductor compiles costs about 34 s on a cold
+    cache. Inductor's kernels are compared with the eager update in tests/equivalence/test_user_changes.py."""
+    monkeypatch.setattr(compiled.CompiledUpdate, "backend", "aot_eager")
+
+
 def first_update_line(model: TD3X, tmp_path: Path) -> str:
     log_file = tmp_path / "log.txt"
     model.set_logger(Logger(folder=str(tmp_path), output_formats=[HumanOutputFormat(str(log_file))]))
@@ -66,7 +74,7 @@ def test_a_users_change_does_not_enter_the_choice(tmp_path):
                                                 "the hooks as written, one graph")
 
 
-def test_a_hook_set_after_the_first_train_is_compiled_with_the_rest(tmp_path):
+def test_a_hook_set_after_the_first_train_is_compiled_with_the_rest(dynamo_graphs_only):
     model = small(compile_update=True, batch_size=16)
     model.learn(20)
     assert model.update_path == "compiled"
@@ -85,7 +93,7 @@ def test_a_hook_set_after_the_first_train_is_compiled_with_the_rest(tmp_path):
 
 
 @pytest.mark.parametrize("kind", ["forward", "forward_pre", "full_backward"])
-def test_a_module_hook_registered_after_the_first_compiled_train_runs(kind):
+def test_a_module_hook_registered_after_the_first_compiled_train_runs(kind, dynamo_graphs_only):
     """A hook added to a module after the update was compiled runs at every later step, as eagerly, or the update
     steps aside with the reason: never a graph that silently leaves it out (torch 2.13 skips the guards on module
     hooks unless told not to)."""
@@ -254,7 +262,7 @@ def test_a_whole_float_for_an_integer_field_says_how_to_write_it():
 
 
 # --- compile_update=None (auto): compiled on a long run, whatever the code --------------------------------------------
-def test_auto_compiles_a_long_run_and_a_resumed_run_decides_as_the_whole_run(tmp_path):
+def test_auto_compiles_a_long_run_and_a_resumed_run_decides_as_the_whole_run(tmp_path, dynamo_graphs_only):
     """The run's length is its target less learning_starts: a run stopped part-way and resumed with learn() of the
     rest (reset_num_timesteps=False, as run.py resumes) decides as the uninterrupted run did, from its first step."""
 
