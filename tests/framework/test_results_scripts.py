@@ -62,7 +62,7 @@ def test_runs_start_skip_when_done_and_resume_to_more_steps(tmp_path, hopper_run
     threads = max(1, len(os.sched_getaffinity(0)) // 2)
     assert yaml.safe_load((made / "runs" / "hopper" / "td3" / "seed0" / "config.yaml").read_text())["torch_threads"] == threads
 
-    td3x = copy_runs(hopper_runs, tmp_path) / "hopper" / "td3" / "seed0"  # a copy resumes as its folder: config.yaml
+    td3x = copy_runs(hopper_runs, tmp_path) / "hopper" / "td3" / "seed0"  # resume= continues a run in the folder given
     again = results_sh(tmp_path, "600", "hopper:td3:0")
     assert again.returncode == 0 and f"done already: {td3x}" in again.stdout
 
