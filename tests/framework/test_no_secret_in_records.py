@@ -1,5 +1,6 @@
-"""No secret in any record: a database password and a W&B key given to a sweep and to ``run.py`` appear in no file of
-their output folders, no study attribute, no log line and no console output.
+"""No secret in any record: a database password given to a sweep appears in no file of its output folders, no study
+attribute, no log line and no console output. A W&B key given to ``run.py``: in the test of a whole run folder,
+``tests/framework/test_run_e2e.py::test_run_py_writes_a_complete_run_folder`` (one run checks both).
 
 The sweep runs on the PostgreSQL server of ``.ci/postgres.sh`` (``SB3_TD3X_TEST_PG_URL``), as its second user
 ``td3x_secret``, whose password holds the characters a URL must encode. Without a server the sweep test is skipped
@@ -19,7 +20,6 @@ from urllib.parse import quote, quote_plus
 
 import optuna
 import pytest
-import yaml
 from omegaconf import OmegaConf
 
 from sb3_td3x.common.redaction import MASK, find_secrets, redact
@@ -30,7 +30,6 @@ PASSWORD_ENV = "SB3_TD3X_STORAGE_PASSWORD"  # sb3_td3x.sweeps.storage.PASSWORD_E
 # Created by .ci/postgres.sh beside the tests' own user.
 SECRET_USER = "td3x_secret"
 PASSWORD = "p@ss:w/rd%"
-WANDB_KEY = "d1e2a3d4b5e6e7f8a9b0-secret-wandb-key-01"
 TINY = ["total_timesteps=300", "algo.learning_starts=100", "algo.buffer_size=1000", "eval.freq=300", "eval.n_episodes=1"]
 
 
@@ -57,33 +56,6 @@ def run(command: list[str], env: dict[str, str], timeout: float = 300) -> subpro
     assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-3000:]
     assert "Traceback" not in done.stderr, done.stderr[-3000:]
     return done
-
-
-def test_run_py_with_a_wandb_key_writes_it_nowhere(tmp_path):
-    """``WANDB_API_KEY`` in the environment and on the command line (``+hydra.job.env_set``, a usual way to hand a
-    job its key), ``logger=wandb`` offline: the key is in no file of the run folder, of Hydra's records, of W&B's
-    offline run or of W&B's cache in $HOME, and not in the console output."""
-    run_dir, home = tmp_path / "run", tmp_path / "home"
-    home.mkdir()
-    env = {k: v for k, v in os.environ.items() if not k.startswith("WANDB_")}
-    env.update(HOME=str(home), WANDB_API_KEY=WANDB_KEY, MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"))
-    args = ["debug=smoke", "env=pendulum", *TINY, "progress_bar=false", "logger=wandb", "logger.wandb.mode=offline"]
-    args += [f"+hydra.job.env_set.WANDB_API_KEY={WANDB_KEY}", f"run_dir={run_dir}"]
-    done = run([sys.executable, "run.py", *args], env)
-
-    n_files = assert_nowhere([WANDB_KEY], [tmp_path], {"stdout": done.stdout, "stderr": done.stderr})
-    assert n_files > 10 and list(run_dir.glob("wandb/offline-run-*/run-*.wandb")) and (run_dir / "tb").is_dir()
-    # The records say a key was there, masked, and still read as what they were.
-    session = json.loads((run_dir / "provenance.jsonl").read_text().splitlines()[0])
-    assert f"+hydra.job.env_set.WANDB_API_KEY={MASK}" in session["command"] and "logger=wandb" in session["command"]
-    assert json.loads((run_dir / "summary.json").read_text())["provenance"]["command"] == session["command"]
-    assert yaml.safe_load((run_dir / ".hydra" / "hydra.yaml").read_text())["hydra"]["job"]["env_set"] == {
-        "WANDB_API_KEY": MASK
-    }
-    assert yaml.safe_load((run_dir / "config.yaml").read_text())["total_timesteps"] == 300
-    # The publishing check finds nothing left to mask in the records it publishes.
-    for name in ("config.yaml", "summary.json", "provenance.jsonl", "evaluations.csv"):
-        assert find_secrets((run_dir / name).read_text()) == [], name
 
 
 def secret_user_url(pg_url: str) -> str:

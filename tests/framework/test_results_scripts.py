@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -32,30 +33,47 @@ def final_step(run_dir: Path) -> int:
     return int(pd.read_csv(run_dir / "evaluations.csv")["timesteps"].iloc[-1])
 
 
-def test_runs_start_skip_when_done_and_resume_to_more_steps(tmp_path):
-    td3x, sb3 = tmp_path / "runs" / "pendulum" / "td3" / "seed0", tmp_path / "runs" / "pendulum" / "sb3_td3" / "seed0"
-    done = results_sh(tmp_path, "600", "pendulum:td3:0", "pendulum:sb3_td3:0")
+HOPPER_JOBS = ["hopper:td3:0", "hopper:td3:1", "hopper:sb3_td3:0", "hopper:sb3_td3:1"]
+
+
+@pytest.fixture(scope="module")
+def hopper_runs(tmp_path_factory) -> tuple[Path, subprocess.CompletedProcess]:
+    """``results.sh 600`` of two seeds of TD3X and of SB3's TD3 on Hopper, two runs at a time, made once for the tests
+    of this file (each works on a copy of ``<folder>/runs``): the folder and the script's output."""
+    folder = tmp_path_factory.mktemp("results")
+    done = results_sh(folder, "600", *HOPPER_JOBS)
     assert done.returncode == 0, done.stdout + done.stderr
-    assert f"starting: {td3x}" in done.stdout and f"starting: {sb3}" in done.stdout
-    assert final_step(td3x) == final_step(sb3) == 600
-    assert "stable_baselines3.TD3" in (sb3 / "config.yaml").read_text()
+    return folder, done
+
+
+def copy_runs(hopper_runs: tuple[Path, subprocess.CompletedProcess], tmp_path: Path) -> Path:
+    shutil.copytree(hopper_runs[0] / "runs", tmp_path / "runs")
+    return tmp_path / "runs"
+
+
+def test_runs_start_skip_when_done_and_resume_to_more_steps(tmp_path, hopper_runs):
+    made, done = hopper_runs
+    for job in HOPPER_JOBS:
+        env, algo, seed = job.split(":")
+        run_dir = made / "runs" / env / algo / f"seed{seed}"
+        assert f"starting: {run_dir}" in done.stdout and final_step(run_dir) == 600, done.stdout
+    assert "stable_baselines3.TD3" in (made / "runs" / "hopper" / "sb3_td3" / "seed0" / "config.yaml").read_text()
     # JOBS=2 runs side by side share the cores
     threads = max(1, len(os.sched_getaffinity(0)) // 2)
-    assert yaml.safe_load((td3x / "config.yaml").read_text())["torch_threads"] == threads
+    assert yaml.safe_load((made / "runs" / "hopper" / "td3" / "seed0" / "config.yaml").read_text())["torch_threads"] == threads
 
-    again = results_sh(tmp_path, "600", "pendulum:td3:0")
+    td3x = copy_runs(hopper_runs, tmp_path) / "hopper" / "td3" / "seed0"  # resume= continues a run in the folder given
+    again = results_sh(tmp_path, "600", "hopper:td3:0")
     assert again.returncode == 0 and f"done already: {td3x}" in again.stdout
 
-    longer = results_sh(tmp_path, "900", "pendulum:td3:0")
+    longer = results_sh(tmp_path, "900", "hopper:td3:0")
     assert longer.returncode == 0, longer.stdout + longer.stderr
     assert f"resuming: {td3x}" in longer.stdout and final_step(td3x) == 900
     sessions = [json.loads(line) for line in (td3x / "provenance.jsonl").read_text().splitlines()]
     assert [session["at_step"] for session in sessions] == [0, 600]
 
-    import shutil
-
     shutil.rmtree(td3x / "checkpoints" / "last")  # only the checkpoint before it left (last.prev): still resumed
-    older = results_sh(tmp_path, "1000", "pendulum:td3:0")
+    older = results_sh(tmp_path, "1000", "hopper:td3:0")
     assert older.returncode == 0 and f"resuming: {td3x}" in older.stdout, older.stdout + older.stderr
     assert final_step(td3x) == 1000
 
@@ -68,9 +86,8 @@ def test_bad_arguments_are_refused_with_a_message(tmp_path):
     assert not (tmp_path / "runs").exists() or not any((tmp_path / "runs").rglob("evaluations.csv"))
 
 
-def test_publish_copies_the_records_and_aggregates_them(tmp_path):
-    jobs = ["hopper:td3:0", "hopper:td3:1", "hopper:sb3_td3:0", "hopper:sb3_td3:1"]
-    assert results_sh(tmp_path, "600", *jobs).returncode == 0
+def test_publish_copies_the_records_and_aggregates_them(tmp_path, hopper_runs):
+    copy_runs(hopper_runs, tmp_path)
     # A seed still running (no summary.json yet): shown with its progress, not aggregated with the finished ones
     running = tmp_path / "runs" / "hopper" / "td3" / "seed2"
     running.mkdir()

@@ -15,9 +15,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+import yaml
 from PIL import Image
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
+from sb3_td3x.common.redaction import MASK, find_secrets
 from sb3_td3x.experiment.configs.compose import compose_config
 from sb3_td3x.experiment.errors import TrainingDiverged
 from sb3_td3x.experiment.launch.hydra_jobs import threads_per_job
@@ -30,10 +32,16 @@ FAKE_KEY = "0123456789abcdef-not-a-real-wandb-key"
 SMOKE = ["debug=smoke", "env=inverted_pendulum", "progress_bar=false"]
 
 
-def can_render() -> bool:
-    code = "import gymnasium as gym; e = gym.make('InvertedPendulum-v5', render_mode='rgb_array'); e.reset(); e.render()"
-    env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
-    return subprocess.run([sys.executable, "-c", code], check=False, env=env, capture_output=True, timeout=120).returncode == 0
+def default_threads_and_rendering(env: dict[str, str]) -> tuple[int, bool]:
+    """The number of threads torch uses by default in a new process, and whether it can render a MuJoCo frame."""
+    code = (
+        "import torch; print(torch.get_num_threads(), flush=True); import gymnasium as gym; "
+        "e = gym.make('InvertedPendulum-v5', render_mode='rgb_array'); e.reset(); e.render(); print('rendered')"
+    )
+    done = subprocess.run([sys.executable, "-c", code], check=False, env=env, capture_output=True, text=True, timeout=120)
+    lines = done.stdout.split()
+    assert lines and lines[0].isdigit(), done.stdout + done.stderr[-3000:]
+    return int(lines[0]), done.returncode == 0 and lines[-1] == "rendered"
 
 
 def read_wandb_records(path: Path) -> list:
@@ -62,15 +70,21 @@ def read_wandb_records(path: Path) -> list:
 
 
 def test_run_py_writes_a_complete_run_folder(tmp_path):
+    """Every record of a run, and no W&B key in any of them (issue 19): ``WANDB_API_KEY`` in the environment and on the
+    command line (``+hydra.job.env_set``, a usual way to hand a job its key), ``logger=wandb`` offline: the key is in no
+    file of the run folder, of Hydra's records, of W&B's offline run or of W&B's cache in $HOME, and not in the console
+    output; the records say a key was there, masked."""
     run_dir = tmp_path / "run"
     home = tmp_path / "home"
     home.mkdir()
-    video = can_render()
     env = {k: v for k, v in os.environ.items() if not k.startswith("WANDB_")}
     # A key in the environment must not end up in any file; mode=offline keeps the test off the network.
     env.update(HOME=str(home), WANDB_API_KEY=FAKE_KEY, MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"))
-    args = SMOKE + ["logger=wandb", "logger.wandb.mode=offline", f"run_dir={run_dir}"]
-    args += ["video=final", "video.width=64", "video.height=64"] if video else []
+    default_threads, video = default_threads_and_rendering(env)
+    # 1000 steps, evaluated every 250: it trains on all the cores (torch_threads=null), beside the other test process
+    args = SMOKE + ["total_timesteps=1000", "eval.freq=250", "checkpoint.freq=500"]
+    args += ["logger=wandb", "logger.wandb.mode=offline", f"+hydra.job.env_set.WANDB_API_KEY={FAKE_KEY}"]
+    args += [f"run_dir={run_dir}"] + (["video=final", "video.width=64", "video.height=64"] if video else [])
     result = subprocess.run(
         [sys.executable, "run.py", *args], check=False, cwd=REPO, env=env, capture_output=True, text=True, timeout=300
     )
@@ -78,21 +92,19 @@ def test_run_py_writes_a_complete_run_folder(tmp_path):
     assert "Traceback" not in result.stderr
     assert "Done: final evaluation" in result.stdout + result.stderr
 
-    # evaluation log: one row per 500 steps, JSON and CSV agree
+    # evaluation log: one row per 250 steps, JSON and CSV agree
     with open(run_dir / "evaluations.csv") as file:
         rows = list(csv.DictReader(file))
-    assert [int(row["timesteps"]) for row in rows] == [500, 1000, 1500, 2000]
+    assert [int(row["timesteps"]) for row in rows] == [250, 500, 750, 1000]
     assert all(math.isfinite(float(row["mean_return"])) for row in rows)
     history = json.loads((run_dir / "evaluations.json").read_text())
     assert [entry["mean_return"] for entry in history] == [float(row["mean_return"]) for row in rows]
     summary = json.loads((run_dir / "summary.json").read_text())
-    assert summary["final_mean_return"] == float(rows[-1]["mean_return"]) and summary["total_timesteps"] == 2000
+    assert summary["final_mean_return"] == float(rows[-1]["mean_return"]) and summary["total_timesteps"] == 1000
     provenance = summary["provenance"]  # what the results pages cite: command, commit, machine, versions
     assert provenance["machine"]["cores"] >= 1 and provenance["versions"]["torch"] == torch.__version__
     # A single run trains on all the cores torch would use by default (torch_threads=null).
-    default_threads = subprocess.run([sys.executable, "-c", "import torch; print(torch.get_num_threads())"], env=env,
-                                     check=True, capture_output=True, text=True, timeout=120).stdout.strip()
-    assert provenance["machine"]["torch_threads"] == int(default_threads)
+    assert provenance["machine"]["torch_threads"] == default_threads
     assert provenance["commit"] is None or len(provenance["commit"].removesuffix("-dirty")) == 40
     sessions = [json.loads(line) for line in (run_dir / "provenance.jsonl").read_text().splitlines()]
     assert len(sessions) == 1 and sessions[0]["at_step"] == 0 and sessions[0]["commit"] == provenance["commit"]
@@ -100,11 +112,11 @@ def test_run_py_writes_a_complete_run_folder(tmp_path):
     # checkpoints: last has everything needed to resume, best the policy to deploy
     last, best = run_dir / "checkpoints" / "last", run_dir / "checkpoints" / "best"
     assert {MODEL_FILE, REPLAY_BUFFER_FILE, STATE_FILE, META_FILE} <= {p.name for p in last.iterdir()}
-    assert json.loads((last / META_FILE).read_text())["num_timesteps"] == 2000
+    assert json.loads((last / META_FILE).read_text())["num_timesteps"] == 1000
     assert {MODEL_FILE, STATE_FILE, META_FILE} <= {p.name for p in best.iterdir()}
     assert not list((run_dir / "checkpoints").glob("*.tmp"))
     previous = json.loads((run_dir / "checkpoints" / "last.prev" / META_FILE).read_text())  # the one before, kept whole
-    assert previous["num_timesteps"] < 2000 and REPLAY_BUFFER_FILE in previous["files"]
+    assert previous["num_timesteps"] < 1000 and REPLAY_BUFFER_FILE in previous["files"]
 
     # learning curve
     image = Image.open(run_dir / "learning_curve.png")
@@ -115,9 +127,9 @@ def test_run_py_writes_a_complete_run_folder(tmp_path):
     events.Reload()
     tags = events.Tags()["scalars"]
     assert {"eval/mean_reward", "train/critic_loss", "train/actor_loss", "rollout/ep_rew_mean"} <= set(tags)
-    assert [event.step for event in events.Scalars("eval/mean_reward")] == [500, 1000, 1500, 2000]
+    assert [event.step for event in events.Scalars("eval/mean_reward")] == [250, 500, 750, 1000]
     # the critic's value estimate against the true value (eval.value_bias, on by default)
-    assert [event.step for event in events.Scalars("eval/overestimation")] == [500, 1000, 1500, 2000]
+    assert [event.step for event in events.Scalars("eval/overestimation")] == [250, 500, 750, 1000]
 
     # W&B offline run: config and metrics, including every evaluation
     (wandb_file,) = glob.glob(str(run_dir / "wandb" / "offline-run-*" / "run-*.wandb"))
@@ -131,17 +143,26 @@ def test_run_py_writes_a_complete_run_folder(tmp_path):
         if r.WhichOneof("record_type") == "history"
     ]
     eval_rows = [row for row in history_rows if "eval/mean_reward" in row]
-    assert [row["global_step"] for row in eval_rows] == [500, 1000, 1500, 2000]
+    assert [row["global_step"] for row in eval_rows] == [250, 500, 750, 1000]
     assert [row["eval/mean_reward"] for row in eval_rows] == pytest.approx([float(row["mean_return"]) for row in rows])
     for key in ("value_estimate", "true_value", "overestimation", "normalized_bias", "value_states"):
         assert [row[f"eval/{key}"] for row in eval_rows] == pytest.approx([float(row[key]) for row in rows]), key
     assert any("train/critic_loss" in row for row in history_rows)
 
-    # the composed config is saved, and no credential landed anywhere
+    # the composed config is saved, and no credential landed anywhere: no file, no console output
     assert "inverted_pendulum" in (run_dir / "config.yaml").read_text()
-    for path in list(run_dir.rglob("*")) + list(home.rglob("*")):
-        if path.is_file():
-            assert FAKE_KEY.encode() not in path.read_bytes(), path
+    files = [path for path in tmp_path.rglob("*") if path.is_file()]  # the run folder and $HOME
+    assert [path for path in files if FAKE_KEY.encode() in path.read_bytes()] == [] and len(files) > 10
+    assert FAKE_KEY not in result.stdout + result.stderr
+    # The records say a key was there, masked, and still read as what they were.
+    assert f"+hydra.job.env_set.WANDB_API_KEY={MASK}" in sessions[0]["command"] and "logger=wandb" in sessions[0]["command"]
+    assert provenance["command"] == sessions[0]["command"]
+    assert yaml.safe_load((run_dir / ".hydra" / "hydra.yaml").read_text())["hydra"]["job"]["env_set"] == {
+        "WANDB_API_KEY": MASK
+    }
+    # The publishing check finds nothing left to mask in the records it publishes.
+    for name in ("config.yaml", "summary.json", "provenance.jsonl", "evaluations.csv"):
+        assert find_secrets((run_dir / name).read_text()) == [], name
 
     if video:
         gif = Image.open(run_dir / "video.gif")
