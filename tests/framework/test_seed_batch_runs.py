@@ -182,7 +182,7 @@ def test_a_batch_stopped_by_sigterm_resumes_from_any_seed_folder(tmp_path, unint
         json.loads((batch_dir / f"seed{s}" / "checkpoints" / "last" / META_FILE).read_text())["num_timesteps"] for s in (0, 1)
     ]
     # Stopped mid-run: seed 1 after its second evaluation; seed 0, in its own process, wherever it was by then.
-    assert stopped_at[1] >= 300 and all(150 < step < 600 for step in stopped_at), stopped_at
+    assert stopped_at[1] >= 300 and all(0 < step < 600 for step in stopped_at), stopped_at
 
     stdout, _ = finish(run_py(f"resume={batch_dir / 'seed1'}", "progress_bar=false"))  # any seed's folder
     assert "Resuming" in stdout and "Training seeds [0, 1] in 2 processes" in stdout
