@@ -139,3 +139,31 @@ def eager_capture(fn, pool):
                 static[key].copy_(fresh[key])
 
     return replay, outputs, pool
+
+
+class _StopHere(Exception):
+    pass
+
+
+def stopped_and_resumed(overrides: list[str], runs: Path, stop_at: int) -> tuple[Path, Path]:
+    """Two runs of ``run_experiment`` with ``overrides`` under ``runs``: ``reference``, never stopped, and ``stopped``,
+    stopped by a report that raises at step ``stop_at`` (which checkpoints as a signal does; the checkpoint's step is
+    checked) and resumed to its end. Returns their folders ``(reference, stopped)``."""
+    import json
+
+    from sb3_td3x.experiment.configs.compose import compose_config
+    from sb3_td3x.experiment.run.checkpoints import META_FILE
+    from sb3_td3x.experiment.runner import run_experiment
+
+    reference, stopped = runs / "reference", runs / "stopped"
+    run_experiment(compose_config([*overrides, f"run_dir={reference}"]))
+
+    def stop(step: int, value: float) -> None:
+        if step >= stop_at:
+            raise _StopHere(step)
+
+    with pytest.raises(_StopHere):
+        run_experiment(compose_config([*overrides, f"run_dir={stopped}"]), report=stop)
+    assert json.loads((stopped / "checkpoints" / "last" / META_FILE).read_text())["num_timesteps"] == stop_at
+    run_experiment(compose_config([*overrides, f"resume={stopped}"]))
+    return reference, stopped

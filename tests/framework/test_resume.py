@@ -14,6 +14,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from conftest import stopped_and_resumed
 
 from sb3_td3x.experiment.configs.compose import compose_config
 from sb3_td3x.experiment.errors import ConfigError
@@ -163,33 +164,17 @@ def test_the_replay_buffer_is_saved_as_its_filled_rows_and_loaded_whole(tmp_path
         assert (after.timeouts == before.timeouts).all()
 
 
-class _StopHere(Exception):
-    pass
-
-
 def test_a_compiled_run_stopped_and_resumed_is_the_run_never_stopped(tmp_path):
     """The compiled update (what compile_update=None picks for a long run on a CPU; asked for here, the run being
     short) is deterministic through a stop and a resume: the same evaluations and weights, to the bit, as a run
     never stopped (the stop is a report that raises, which checkpoints as a signal does). 1000 steps: 300 compiled
     updates before the stop at step 500, 500 after it."""
-    from sb3_td3x.experiment.runner import run_experiment
-
     overrides = [*RUN, "logger=none", "algo.compile_update=true"]
     overrides += ["total_timesteps=1000", "algo.learning_starts=200", "eval.freq=250"]
-    run_experiment(compose_config([*overrides, f"run_dir={tmp_path / 'reference'}"]))
-
-    def stop_at_500(step: int, value: float) -> None:
-        if step >= 500:
-            raise _StopHere(step)
-
-    stopped = tmp_path / "stopped"
-    with pytest.raises(_StopHere):
-        run_experiment(compose_config([*overrides, f"run_dir={stopped}"]), report=stop_at_500)
-    assert json.loads((stopped / "checkpoints" / "last" / META_FILE).read_text())["num_timesteps"] == 500
-    run_experiment(compose_config([*overrides, f"resume={stopped}"]))
+    reference, stopped = stopped_and_resumed(overrides, tmp_path, stop_at=500)
     summary = json.loads((stopped / "summary.json").read_text())
     assert summary["update_path"] == "compiled"
     assert [row[0] for row in curve(stopped)] == [250, 500, 750, 1000]
-    assert curve(stopped) == curve(tmp_path / "reference")
-    for name, tensor in policy_weights(tmp_path / "reference").items():
+    assert curve(stopped) == curve(reference)
+    for name, tensor in policy_weights(reference).items():
         torch.testing.assert_close(policy_weights(stopped)[name], tensor, rtol=0, atol=0, msg=name)

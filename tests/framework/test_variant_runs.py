@@ -13,11 +13,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from conftest import stopped_and_resumed
 import yaml
 
 from sb3_td3x.experiment.run.checkpoints import META_FILE, REPLAY_BUFFER_FILE
-from sb3_td3x.experiment.runner import run_experiment
-from sb3_td3x.experiment.configs.compose import compose_config
 
 REPO = Path(__file__).resolve().parents[2]
 VARIANTS = {
@@ -48,28 +47,13 @@ def test_run_py_trains_the_variant_to_a_summary(tmp_path, algo):
     assert (run_dir / "evaluations.csv").is_file() and (run_dir / "checkpoints" / "last" / META_FILE).is_file()
 
 
-class _StopHere(Exception):
-    pass
-
-
 def test_a_lap_run_stopped_and_resumed_is_the_run_never_stopped(tmp_path):
     """The priorities are part of the replay buffer's checkpoint: a TD3LAP run stopped at step 800 and resumed ends
     with the evaluations (one of them after the resume), the weights and the priorities (every level of the sum tree,
     the priority of new transitions, the update count) of the run never stopped, to the bit."""
     overrides = ["algo=td3_lap", "debug=smoke", "env=inverted_pendulum", "total_timesteps=1200", "eval.freq=400",
                  "checkpoint.freq=100000", "progress_bar=false", "torch_threads=1", "logger=none"]  # fmt: skip
-    reference = tmp_path / "reference"
-    run_experiment(compose_config([*overrides, f"run_dir={reference}"]))
-
-    def stop_at_800(step: int, value: float) -> None:
-        if step >= 800:
-            raise _StopHere(step)
-
-    stopped = tmp_path / "stopped"
-    with pytest.raises(_StopHere):
-        run_experiment(compose_config([*overrides, f"run_dir={stopped}"]), report=stop_at_800)
-    assert json.loads((stopped / "checkpoints" / "last" / META_FILE).read_text())["num_timesteps"] == 800
-    run_experiment(compose_config([*overrides, f"resume={stopped}"]))
+    reference, stopped = stopped_and_resumed(overrides, tmp_path, stop_at=800)
     assert _curve(stopped) == _curve(reference)
     ends = [_last_checkpoint(run) for run in (reference, stopped)]
     for name, tensor in ends[0]["policy"].items():
