@@ -416,26 +416,32 @@ class TensorReplayBuffer(ReplayBuffer):
         # One flat row index per transition and ``index_select`` on (buffer_size * n_envs, ...) views: a third of the
         # time of indexing with the two index tensors. One env (``env_inds`` None): the row is the index.
         rows = batch_inds if env_inds is None else batch_inds * self.n_envs + env_inds
-
-        def take(storage: th.Tensor, index: th.Tensor = rows) -> th.Tensor:
-            return storage.view(-1, *storage.shape[2:]).index_select(0, index)
-
         if self.n_steps > 1:
             return self._gather_n_steps(batch_inds, env_inds, rows, env, weights)
 
+        take = self._take
         if self.optimize_memory_usage:
             next_rows = (batch_inds + 1) % self.buffer_size * self.n_envs
             next_obs = take(self.observations, next_rows if env_inds is None else next_rows + env_inds)
         else:
-            next_obs = take(self.next_observations)  # type: ignore[arg-type]
-        obs = take(self.observations)
-        # Only use dones that are not due to timeouts
-        dones = (take(self.dones) * (1 - take(self.timeouts))).unsqueeze(1)
-        rewards = take(self.rewards).unsqueeze(1)
+            next_obs = take(self.next_observations, rows)  # type: ignore[arg-type]
+        obs = take(self.observations, rows)
+        dones = self._terminations(rows)
+        rewards = take(self.rewards, rows).unsqueeze(1)
         if env is not None:
             obs, next_obs = self._normalize(obs, env), self._normalize(next_obs, env)
             rewards = self._normalize_rew(rewards, env)
-        return TensorReplayBufferSamples(obs, take(self.actions), next_obs, dones, rewards, None, rows, weights)
+        return TensorReplayBufferSamples(obs, take(self.actions, rows), next_obs, dones, rewards, None, rows, weights)
+
+    @staticmethod
+    def _take(storage: th.Tensor, rows: th.Tensor) -> th.Tensor:
+        """The ``rows`` of a (buffer_size, n_envs, ...) storage tensor, through its (buffer_size * n_envs, ...) view."""
+        return storage.view(-1, *storage.shape[2:]).index_select(0, rows)
+
+    def _terminations(self, rows: th.Tensor) -> th.Tensor:
+        """Shape (len(rows), 1): 1 where the transition ended its episode by a termination (a done that is not a
+        time-limit truncation), 0 otherwise."""
+        return (self._take(self.dones, rows) * (1 - self._take(self.timeouts, rows))).unsqueeze(1)
 
     def _gather_n_steps(
         self,
@@ -470,17 +476,13 @@ class TensorReplayBuffer(ReplayBuffer):
         discounts = powers[n_kept].unsqueeze(1)  # (batch, 1): gamma ** (steps summed)
         last = (batch_inds + n_kept - 1) % self.buffer_size
         last_rows = last if env_inds is None else last * self.n_envs + env_inds
-
-        def take(storage: th.Tensor, index: th.Tensor) -> th.Tensor:
-            return storage.view(-1, *storage.shape[2:]).index_select(0, index)
-
-        next_obs = take(self.next_observations, last_rows)  # type: ignore[arg-type]
-        dones = (take(self.dones, last_rows) * (1 - take(self.timeouts, last_rows))).unsqueeze(1)
-        obs = take(self.observations, rows)
+        next_obs = self._take(self.next_observations, last_rows)  # type: ignore[arg-type]
+        dones = self._terminations(last_rows)
+        obs = self._take(self.observations, rows)
         if env is not None:
             obs, next_obs = self._normalize(obs, env), self._normalize(next_obs, env)
         return TensorReplayBufferSamples(
-            obs, take(self.actions, rows), next_obs, dones, n_step_returns, discounts, rows, weights
+            obs, self._take(self.actions, rows), next_obs, dones, n_step_returns, discounts, rows, weights
         )
 
     def _newest_position(self) -> th.Tensor | int:
