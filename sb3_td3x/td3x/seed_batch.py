@@ -9,27 +9,13 @@
     batch[2].save("hopper_seed2")             # seed 2 is a full TD3X: predict, save, evaluate_policy, TD3X.load
     batch[2].update_path, batch[2].update_reason  # how its gradient steps ran, and why
 
-Each round, every seed collects its rollout (its model's ``collect_rollouts``), then each seed takes its gradient
-steps with its model's own ``train()``: the update its lone run would run (compiled on a long run, on a CPU), so seed
-``i`` computes its lone run's numbers bit for bit.
-
-**Collection.** The seeds collect one after the other in the caller's thread, or side by side in
-``collect_threads`` threads: MuJoCo's step and torch's kernels release Python's lock, so there the seeds'
-environments step in parallel. Only seeds whose round code draws nothing from the global generators (see *Random
-numbers*) collect in threads, the others after them in the caller's thread. A thread starts with the caller's
-floating-point environment, and each seed's code runs as its lone run's, so a seed computes the same bits in a
-thread. Threads are not the default: on a 2-core CPU they made a batch of 8 Hopper seeds 1.8 times slower (the
-seeds' Python runs in turn under the lock anyway, and torch's OpenMP threads then wait longer between the update's
-kernels; docs/performance.md). On a GPU (``batched_actions``) pi(s) of all seeds is computed at the start of a
-round in one call of the actor, vmapped over the seeds' stacked parameters
-(:func:`~.update_paths.exploration.prefetch_actions`; a seed whose observation, step count or actor changed since
-computes its own); each seed's exploration noise is its own draw.
-
-**Random numbers.** Each model draws from its own streams (:class:`~sb3_td3x.common.random_streams.RandomStreams`),
-detached right after ``make_model`` built it, where its lone run stands. Code that may draw from the global generators
-itself runs with its seed's streams installed as them: a seed's own ``train()``, and each round of a seed whose
-model is not a TD3X, or whose model, policy, action noise (other than SB3's ``NormalActionNoise``), callbacks or
-environments are classes from outside SB3, gymnasium and this package. Other rounds swap nothing.
+Each round, every seed collects its rollout (its model's ``collect_rollouts``), then takes its gradient steps with
+its model's own ``train()``: the update its lone run would run, so seed ``i`` computes its lone run's numbers bit for
+bit. Each model draws from its own random streams (:class:`~sb3_td3x.common.random_streams.RandomStreams`), detached
+where its lone run stands; code that may draw from the global generators runs with its seed's streams installed as
+them (:func:`_may_draw_from_globals`). The seeds collect in turn, or in ``collect_threads`` threads, and on a GPU pi(s)
+of all seeds is one vmapped call (:func:`~.update_paths.exploration.prefetch_actions`): docs/seeds.md says how each
+works, and what was measured.
 """
 
 from __future__ import annotations

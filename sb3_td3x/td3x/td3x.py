@@ -129,23 +129,16 @@ class TD3X(OffPolicyAlgorithm):
         GPUs), with fp32 weights, gradients, optimizer states and losses. A CPU without AVX512-BF16 or AMX (an AVX2
         one) runs bf16 products in software, tens of times slower than fp32: TD3X warns there
     :param compile_update: run the update (steps 5 to 15: the hooks as written, both optimizer steps included) as one
-        ``torch.compile`` graph (:class:`~sb3_td3x.td3x.update_paths.compiled.CompiledUpdate`): whatever the hooks,
-        the networks and the losses are, they are compiled as written. Code Dynamo cannot put in one graph (a print,
-        ``.item()``, ``optimizer.zero_grad()``, an optimizer other than Adam or AdamW...) makes the update run eagerly,
-        with the reason in ``update_reason``. ``None`` (auto, the default) compiles on a CPU (on a GPU inside CUDA
-        graphs, see ``cuda_graph``), in fp32, with a C++ compiler, for a run of at least
-        :attr:`compile_auto_min_steps` training steps (its target less ``learning_starts``), which pays back the
-        first steps' compilation (:func:`~sb3_td3x.td3x.update_paths.compiled.why_not_compile`: it asks about the
-        machine and the run, never about the code); ``True`` compiles any run; ``False`` never compiles.
-        ``update_compiled`` says whether the update is compiled and ``compile_reason`` why, decided at the first
-        ``train()`` of each ``learn()``; ``update_path`` and ``update_reason`` say what ran (logged once)
-    :param cuda_graph: on a GPU, CUDA graphs for the update (no kernel-launch or Python overhead per step). ``None``
-        (auto, the default): the compiled update of ``compile_update`` runs inside CUDA graphs (``torch.compile``'s
-        ``reduce-overhead`` mode; Dynamo's guards see every Python value the hooks read). ``True`` captures
-        ``gradient_step`` as it is, sampling included, in CUDA graphs of its own and replays them
-        (:class:`~sb3_td3x.td3x.update_paths.cuda_graph.GraphedGradientStep`): what the hooks decide in Python is
-        decided once, at the capture (CUDA only: an error on a CPU). ``False`` never uses graphs. ``cuda_graph``
-        says whether ``True``'s graphs are set up, ``cuda_graph_request`` what was asked and ``cuda_graph_reason`` why
+        ``torch.compile`` graph (:class:`~sb3_td3x.td3x.update_paths.compiled.CompiledUpdate`). ``None`` (auto, the
+        default) compiles on a CPU or a GPU, in fp32, with a C++ compiler, for a run of at least
+        :attr:`compile_auto_min_steps` training steps (:func:`~sb3_td3x.td3x.update_paths.compiled.why_not_compile`:
+        the machine and the run, never the code); ``True`` compiles any run, ``False`` none. Code Dynamo cannot put in
+        one graph runs eagerly, with the reason. ``update_compiled``, ``compile_reason``, ``update_path`` and
+        ``update_reason`` say what ran and why (logged once; docs/how_it_is_fast.md)
+    :param cuda_graph: on a GPU, ``None`` (auto) runs the compiled update in CUDA graphs (``reduce-overhead``);
+        ``True`` captures ``gradient_step`` as it is in CUDA graphs of its own
+        (:class:`~sb3_td3x.td3x.update_paths.cuda_graph.GraphedGradientStep`: what the hooks decide in Python is
+        decided once, at the capture; an error on a CPU); ``False`` never uses graphs (``cuda_graph_reason`` says why)
     :param flush_denormals: on a CPU, flush denormal floats to zero during ``train()`` on every torch thread
         (:func:`~sb3_td3x.common.denormals.flush_denormals`): Adam's second moment makes them from tiny gradients, and
         each costs a hundred cycles; the process's setting is restored after each call
@@ -281,49 +274,38 @@ class TD3X(OffPolicyAlgorithm):
     def hyperparameter_problems(**values: Any) -> list[tuple[str, str]]:
         """The constructor's range checks, the one source of truth (the experiment configs use them too): a list of
         ``(name, what it must be)`` for each invalid value among ``values`` (every checked argument must be given)."""
-        problems: list[tuple[str, str]] = []
 
-        def fail(name: str, allowed: str) -> None:
-            problems.append((name, allowed))
-
-        def is_number(x: Any) -> bool:
+        def number(x: Any) -> bool:
             return isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, bool)
 
-        def is_int(x: Any) -> bool:
-            return isinstance(x, (int, np.integer)) and not isinstance(x, bool)
+        def integer(x: Any, least: int) -> bool:
+            return isinstance(x, (int, np.integer)) and not isinstance(x, bool) and x >= least
 
-        for name in ("learning_rate", "critic_learning_rate"):
-            value = values[name]
-            if value is None and name == "critic_learning_rate":
-                continue
-            if is_number(value):
-                if not (math.isfinite(value) and value > 0):
-                    fail(name, "a positive finite float (or a schedule: a callable of the progress remaining)")
-            elif not callable(value):
-                fail(name, "a positive float or a schedule (a callable of the progress remaining)")
-        if not is_int(values["buffer_size"]) or values["buffer_size"] < 1:
-            fail("buffer_size", "an integer >= 1")
-        if not is_int(values["learning_starts"]) or values["learning_starts"] < 0:
-            fail("learning_starts", "an integer >= 0")
-        if not is_int(values["batch_size"]) or values["batch_size"] < 1:
-            fail("batch_size", "an integer >= 1")
-        for name in ("tau", "gamma"):
-            if not is_number(values[name]) or not 0.0 <= values[name] <= 1.0:
-                fail(name, "a float in [0, 1]")
-        if not is_int(values["gradient_steps"]) or values["gradient_steps"] < -1:
-            fail("gradient_steps", "an integer >= 0, or -1 (as many gradient steps as environment steps)")
-        if not is_int(values["n_steps"]) or values["n_steps"] < 1:
-            fail("n_steps", "an integer >= 1")
-        if not is_int(values["policy_delay"]) or values["policy_delay"] < 1:
-            fail("policy_delay", "an integer >= 1 (1 updates the actor at every gradient step)")
-        for name in ("target_policy_noise", "target_noise_clip"):
-            if not is_number(values[name]) or not (math.isfinite(values[name]) and values[name] >= 0):
-                fail(name, "a finite float >= 0 (use target_policy_smoothing=False to switch smoothing off)")
-        if values["compile_update"] is not None and not isinstance(values["compile_update"], (bool, np.bool_)):
-            fail("compile_update", "None (auto: compiled on a long run, on a CPU or in CUDA graphs), True or False")
-        if values["cuda_graph"] is not None and not isinstance(values["cuda_graph"], (bool, np.bool_)):
-            fail("cuda_graph", "None (auto: a GPU's compiled update in CUDA graphs), True or False")
-        return problems
+        def rate(x: Any) -> bool:
+            return (number(x) and math.isfinite(x) and x > 0) or (callable(x) and not number(x))
+
+        def switch(x: Any) -> bool:
+            return x is None or isinstance(x, (bool, np.bool_))
+
+        schedule = "a positive finite float or a schedule (a callable of the progress remaining)"
+        noise = "a finite float >= 0 (use target_policy_smoothing=False to switch smoothing off)"
+        checks = (
+            ("learning_rate", rate, schedule),
+            ("critic_learning_rate", lambda x: x is None or rate(x), f"None (the actor's) or {schedule}"),
+            ("buffer_size", lambda x: integer(x, 1), "an integer >= 1"),
+            ("learning_starts", lambda x: integer(x, 0), "an integer >= 0"),
+            ("batch_size", lambda x: integer(x, 1), "an integer >= 1"),
+            ("tau", lambda x: number(x) and 0.0 <= x <= 1.0, "a float in [0, 1]"),
+            ("gamma", lambda x: number(x) and 0.0 <= x <= 1.0, "a float in [0, 1]"),
+            ("gradient_steps", lambda x: integer(x, -1), "an integer >= 0, or -1 (as many gradient steps as environment steps)"),
+            ("n_steps", lambda x: integer(x, 1), "an integer >= 1"),
+            ("policy_delay", lambda x: integer(x, 1), "an integer >= 1 (1 updates the actor at every gradient step)"),
+            ("target_policy_noise", lambda x: number(x) and math.isfinite(x) and x >= 0, noise),
+            ("target_noise_clip", lambda x: number(x) and math.isfinite(x) and x >= 0, noise),
+            ("compile_update", switch, "None (auto: compiled on a long run, on a CPU or in CUDA graphs), True or False"),
+            ("cuda_graph", switch, "None (auto: a GPU's compiled update in CUDA graphs), True or False"),
+        )
+        return [(name, allowed) for name, ok, allowed in checks if not ok(values[name])]
 
     def _setup_model(self) -> None:
         if self.replay_buffer_class is None and isinstance(self.observation_space, spaces.Box):

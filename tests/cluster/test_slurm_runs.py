@@ -139,18 +139,20 @@ def test_a_requeued_batch_job_finds_its_dated_folder_by_its_job_id(slurm, tmp_pa
     assert (first[0] / ".hydra" / "requeued_1").is_dir()
 
 
-@pytest.mark.parametrize("dated", [False, True], ids=["run_dir", "dated_seed_folders"])
-def test_a_requeued_job_of_seeds_in_processes_resumes_them_all_bit_identical(slurm, tmp_path, dated, uninterrupted):
+def test_a_requeued_job_of_seeds_in_processes_resumes_them_all_bit_identical(slurm, tmp_path, uninterrupted):
     """``sbatch --cpus-per-task=2`` of ``run.py seeds=[0,1]``: the job's two cores give two seed processes, which
     SLURM signals itself at the requeue (nothing is passed on: one SIGTERM each); each checkpoints, the job starts
-    again, finds the seeds' folders by the first seed's (``<run_dir>/seed<s>``, or ``seed<s>/<time>`` named anew by
-    the clock at the restart: the job's earlier ones), resumes both in processes, and each seed ends with the weights
-    and evaluations of a run never stopped."""
+    again, finds the seeds' folders by the first seed's (``seed<s>/<time>``, named anew by the clock at the restart:
+    the job's earlier ones), resumes both in processes, and each seed ends with the weights and evaluations of a run
+    never stopped. (A fixed ``run_dir`` is the simpler case of the same resume: nothing to find; the requeued runs
+    above resume in theirs.)"""
     run = [*SMOKE, *LENGTH, "seeds=[0,1]"]
     runs = tmp_path / "runs"
-    run_dir = f"{runs}/seed0/${{now:%H-%M-%S}}" if dated else f"{runs}"
-    folders = (lambda: [next(iter((runs / f"seed{s}").iterdir()), None) for s in (0, 1)]) if dated else (
-        lambda: [runs / f"seed{s}" for s in (0, 1)])  # fmt: skip
+    run_dir = f"{runs}/seed0/${{now:%H-%M-%S}}"
+
+    def folders() -> list[Path | None]:
+        return [next(iter((runs / f"seed{s}").iterdir()), None) for s in (0, 1)]
+
     script = tmp_path / "job.sh"
     script.write_text(
         "#!/bin/bash\n"
@@ -174,8 +176,7 @@ def test_a_requeued_job_of_seeds_in_processes_resumes_them_all_bit_identical(slu
     log = (tmp_path / f"job_{job_id}.out").read_text()
     assert job_fields(job_id)["JobState"] == "COMPLETED", log[-3000:]
     assert log.count("in 2 processes") == 2, log[-3000:]  # at the first start and at the requeue
-    if dated:
-        assert [len(list((runs / f"seed{s}").iterdir())) for s in (0, 1)] == [1, 1], "one folder per seed, continued"
+    assert [len(list((runs / f"seed{s}").iterdir())) for s in (0, 1)] == [1, 1], "one folder per seed, continued"
     for seed, run_dir_of_seed in zip((0, 1), folders()):
         reference_dir = uninterrupted(seed)
         sessions = _sessions(run_dir_of_seed)

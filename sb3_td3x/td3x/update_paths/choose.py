@@ -25,15 +25,9 @@ class UpdateChoice:
 
 
 def choose_update(model: Any) -> UpdateChoice:
-    """The way ``model``'s gradient steps run, and why. Every way runs the model's hooks as written:
-
-    - ``cuda_graph=True`` on a CUDA device: ``gradient_step`` captured in CUDA graphs and replayed
-      (:class:`GraphedGradientStep`: what the hooks decide in Python is decided once, at the capture);
-    - compiled (:func:`~sb3_td3x.td3x.update_paths.compiled.decide_compile`: ``compile_update=True``, or auto on a
-      long run): the update as one ``torch.compile`` graph (:class:`CompiledUpdate`), on a GPU inside CUDA graphs
-      (``cuda_graph=None``), which steps aside to the eager update, saying why, where no such graph can be made;
-    - otherwise ``gradient_step`` itself, eagerly.
-    """
+    """The way ``model``'s gradient steps run, and why: ``cuda_graph=True``'s capture, the compiled update
+    (:func:`~sb3_td3x.td3x.update_paths.compiled.decide_compile`; on a GPU inside CUDA graphs) or ``gradient_step``
+    itself, eagerly (the table of :mod:`sb3_td3x.td3x.update_paths`). Every way runs the model's hooks as written."""
     if model.cuda_graph:
         return UpdateChoice("cuda_graph", model.cuda_graph_reason, GraphedGradientStep(model))
     if decide_compile(model):

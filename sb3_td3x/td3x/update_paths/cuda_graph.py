@@ -80,15 +80,10 @@ def _set_device_random_state(device: th.device, state: th.Tensor) -> None:
 
 class GraphedGradientStep:
     """
-    The whole gradient step (sampling included) captured once per (batch size, actor update or not) and replayed.
-
-    Requirements: a CUDA device, the tensor replay buffer (sampled on the device from bounds kept in device
-    tensors), no ``VecNormalize`` (it normalises on the host), and Adam with ``capturable=True`` and its learning
-    rates in device tensors (``TD3X`` sets these up; :func:`why_not_capture` checks the rest).
-    The warm-up steps that precede a capture are undone (parameters, optimizer states and the device's random
-    generator restored), so capturing does not change what is learned: each replay computes the eager step that
-    would have run in its place, with the same random draws (``tests/gpu/test_cuda.py`` checks it on a GPU).
-    A change of one of :data:`GRAPH_SETTINGS` between two calls captures the graphs again.
+    The whole gradient step (sampling included) captured once per (batch size, actor update or not) and replayed
+    (see the module's docstring; :func:`why_not_capture` checks what it requires). The warm-up steps before a capture
+    are undone (parameters, optimizer states and the device's random generator restored), so each replay computes
+    the eager step that would have run in its place, with the same random draws (``tests/gpu/test_cuda.py``).
 
     :param model: the TD3X model
     :param capture: how to capture a step; ``cuda_graph_capture`` on a GPU. Tests on the CPU pass an eager stand-in,
