@@ -30,6 +30,17 @@ def _inductor_cache_per_test_process() -> None:
 _inductor_cache_per_test_process()
 
 
+@pytest.fixture
+def dynamo_graphs_only(monkeypatch):
+    """The compiled update's graphs run by AOTAutograd's eager kernels (``aot_eager``), for tests whose claim is
+    Dynamo's (the choice, guards and recompiles, which tensors a graph steps, a change captured in one graph): each
+    graph Inductor compiles costs about 25 to 34 s on a cold cache. Inductor's own kernels are compared with the eager
+    update in tests/equivalence/test_user_changes.py and by test_acceleration.py's Adam test."""
+    from sb3_td3x.td3x.update_paths.compiled import CompiledUpdate
+
+    monkeypatch.setattr(CompiledUpdate, "backend", "aot_eager")
+
+
 @pytest.fixture(scope="session", autouse=True)
 def _sb3_logdir(tmp_path_factory):
     """SB3's ``configure(None, ...)`` (every ``learn()`` without ``tensorboard_log``, and the tests' silent loggers)

@@ -284,6 +284,12 @@ class TD3X(OffPolicyAlgorithm):
         def rate(x: Any) -> bool:
             return (number(x) and math.isfinite(x) and x > 0) or (callable(x) and not number(x))
 
+        def fraction(x: Any) -> bool:
+            return number(x) and 0.0 <= x <= 1.0
+
+        def non_negative(x: Any) -> bool:
+            return number(x) and math.isfinite(x) and x >= 0
+
         def switch(x: Any) -> bool:
             return x is None or isinstance(x, (bool, np.bool_))
 
@@ -295,13 +301,14 @@ class TD3X(OffPolicyAlgorithm):
             ("buffer_size", lambda x: integer(x, 1), "an integer >= 1"),
             ("learning_starts", lambda x: integer(x, 0), "an integer >= 0"),
             ("batch_size", lambda x: integer(x, 1), "an integer >= 1"),
-            ("tau", lambda x: number(x) and 0.0 <= x <= 1.0, "a float in [0, 1]"),
-            ("gamma", lambda x: number(x) and 0.0 <= x <= 1.0, "a float in [0, 1]"),
-            ("gradient_steps", lambda x: integer(x, -1), "an integer >= 0, or -1 (as many gradient steps as environment steps)"),
+            ("tau", fraction, "a float in [0, 1]"),
+            ("gamma", fraction, "a float in [0, 1]"),
+            ("gradient_steps", lambda x: integer(x, -1),
+             "an integer >= 0, or -1 (as many gradient steps as environment steps)"),
             ("n_steps", lambda x: integer(x, 1), "an integer >= 1"),
             ("policy_delay", lambda x: integer(x, 1), "an integer >= 1 (1 updates the actor at every gradient step)"),
-            ("target_policy_noise", lambda x: number(x) and math.isfinite(x) and x >= 0, noise),
-            ("target_noise_clip", lambda x: number(x) and math.isfinite(x) and x >= 0, noise),
+            ("target_policy_noise", non_negative, noise),
+            ("target_noise_clip", non_negative, noise),
             ("compile_update", switch, "None (auto: compiled on a long run, on a CPU or in CUDA graphs), True or False"),
             ("cuda_graph", switch, "None (auto: a GPU's compiled update in CUDA graphs), True or False"),
         )

@@ -132,12 +132,11 @@ def test_compiled_update_stays_finite_in_a_run():
     assert np.isfinite(model.logger.name_to_value["train/critic_loss"])
 
 
-def test_compiled_update_keeps_the_optimizer_state_usable_eagerly(monkeypatch):
+def test_compiled_update_keeps_the_optimizer_state_usable_eagerly(dynamo_graphs_only):
     """The compiled update steps the optimizers' own states: switching compile_update off mid-run goes on exactly
     as an eager run would (and so do saving and loading them). Which state tensors the graph steps is Dynamo's and
     AOTAutograd's doing: run with ``aot_eager`` (a graph of its own, without smoothing noise, which Inductor would
     compile for about 25 s per graph on a cold cache; Inductor steps the same states in the Adam test above)."""
-    monkeypatch.setattr(CompiledUpdate, "backend", "aot_eager")
     # No smoothing noise: each train_fed call reseeds the RNG, which the eager run only does once.
     eager, switched = small(target_policy_smoothing=False), small(target_policy_smoothing=False, compile_update=True)
     switched.policy.load_state_dict(eager.policy.state_dict())
@@ -172,10 +171,9 @@ class ZeroGradClippedTD3X(TD3X):
         self.critic.optimizer.step()
 
 
-def test_a_clipped_critic_step_is_compiled_when_written_with_gradients_and_apply_gradients(monkeypatch):
+def test_a_clipped_critic_step_is_compiled_when_written_with_gradients_and_apply_gradients(dynamo_graphs_only):
     """gradients() and apply_gradients() trace into one graph with the rest (Dynamo's capture: ``aot_eager``, as the
     catalogue of tests/equivalence/test_user_changes.py), and compute clip_grad_norm_'s step."""
-    monkeypatch.setattr(CompiledUpdate, "backend", "aot_eager")
     eager, compiled = small(cls=ClippedTD3X), small(cls=ClippedTD3X, compile_update=True)
     compiled.policy.load_state_dict(eager.policy.state_dict())
     reference = small(cls=ZeroGradClippedTD3X)

@@ -37,14 +37,6 @@ def small(policy="MlpPolicy", **kwargs) -> TD3X:
     return TD3X(policy, "Pendulum-v1", **kwargs)
 
 
-@pytest.fixture
-def dynamo_graphs_only(monkeypatch):
-    """The compiled update's graphs run by AOTAutograd's eager kernels (``aot_eager``): what these tests check (the
-    choice, Dynamo's guards and recompiles) is Dynamo's, and each graph Inductor compiles costs about 34 s on a cold
-    cache. Inductor's kernels are compared with the eager update in tests/equivalence/test_user_changes.py."""
-    monkeypatch.setattr(compiled.CompiledUpdate, "backend", "aot_eager")
-
-
 def first_update_line(model: TD3X, tmp_path: Path) -> str:
     log_file = tmp_path / "log.txt"
     model.set_logger(Logger(folder=str(tmp_path), output_formats=[HumanOutputFormat(str(log_file))]))
