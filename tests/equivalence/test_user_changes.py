@@ -29,7 +29,6 @@ from torch import nn
 
 from sb3_td3x.td3x import TD3X, TD3XCritic, TD3XPolicy
 from sb3_td3x.td3x.hooks import HOOK_NAMES
-from sb3_td3x.td3x.update_paths.compiled import CompiledUpdate
 
 STEPS, LEARNING_STARTS = 260, 60  # 200 gradient steps on Pendulum-v1
 NET = [32, 32]
@@ -418,11 +417,10 @@ def assert_far_beyond_rounding(compiled: TD3X, eager: TD3X, name: str) -> None:
 
 
 @pytest.mark.parametrize("name", list(CASES))
-def test_a_users_change_is_compiled_as_written(name, monkeypatch):
+def test_a_users_change_is_compiled_as_written(name, dynamo_graphs_only):
     """Dynamo captures each change with the rest of the update (run here by AOTAutograd's eager kernels, the
     ``aot_eager`` backend, so that the catalogue stays fast; Inductor compiles these graphs in the tests below), or
     the update says why not and runs eagerly."""
-    monkeypatch.setattr(CompiledUpdate, "backend", "aot_eager")
     case = CASES[name]
     compiled = train_updates(case, updates=20, compile_update=True)
     eager = train_updates(case, updates=20, compile_update=False)
@@ -471,10 +469,9 @@ def test_a_users_change_reaches_collection_and_changes_learning(name):
 
 
 @pytest.mark.parametrize("name", list(STOCK))
-def test_the_stock_setups_compile_and_match_the_hooks(name, monkeypatch):
+def test_the_stock_setups_compile_and_match_the_hooks(name, dynamo_graphs_only):
     """Dynamo's graphs of the stock set-ups (``aot_eager``, as the catalogue; Inductor compiles stock-defaults in
     test_inductor_compiles_a_users_change_as_written) compute what the hooks compute, and collection is SB3's."""
-    monkeypatch.setattr(CompiledUpdate, "backend", "aot_eager")
     compiled = train_updates(STOCK[name], updates=20, compile_update=True)
     eager = train_updates(STOCK[name], updates=20, compile_update=False)
     assert compiled.update_path == "compiled" and eager.update_path == "eager"
