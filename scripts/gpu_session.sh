@@ -3,7 +3,8 @@
 # machine's start included: one call of under 10 minutes. Prepare here, once: `bash scripts/gpu_wheels.sh` (the
 # packages the machine's image lacks, into .whl/), then call the device tool's run with
 #   command: bash scripts/gpu_session.sh measure     carry: [".whl", ".gl"]     timeout_s: 600
-# and the other parts in later sessions, in this order:
+# (or `session`: the GPU tests and the measure part's tables in one call) and the other parts in later sessions, in
+# this order:
 # measure:    `python run.py env=ant`'s update path, one seed of TD3X's default of a long run (the hooks compiled
 #             inside torch.compile's CUDA graphs) and of cuda_graph=True (gradient_step captured whole) against SB3's
 #             and SBX's TD3 (Ant-v5, HalfCheetah-v5), and 16 Ant seeds every way (one SeedBatch, TD3X and SBX
@@ -35,7 +36,33 @@ export PYTHONPATH=/tmp/site:$PWD MUJOCO_GL=egl PYTHONUNBUFFERED=1
   >> "$OUT/machine.txt" 2>&1
 left() { echo $(( ${1} - (SECONDS - start) )); }  # seconds left of this part's budget
 
-if [ "$part" = measure ]; then
+if [ "$part" = session ]; then
+  # One session's whole check in one call of under 10 minutes: the GPU test layer first (the exactness of the CUDA
+  # paths: the default of a long run compiled inside CUDA graphs, SB3 equality, seed batches), then the measure part's
+  # tables with shorter limits. Eight files come back at most, so run.py's update line joins throughput.txt.
+  timeout 150 python3 -m pytest -q -p no:cacheprovider -n 11 --timeout 140 -rfEs --durations=12 tests/gpu \
+    > "$OUT/tests_gpu.txt" 2>&1
+  echo "tests/gpu rc=$?" >> "$OUT/tests_gpu.txt"; tail -n 16 "$OUT/tests_gpu.txt"
+  timeout 50 python3 run.py env=ant total_timesteps=10300 eval.freq=100000 logger=none progress_bar=false \
+    run_dir=/tmp/ant_default > /tmp/ant_default.txt 2>&1
+  echo "run.py env=ant rc=$?; $(grep -o 'update: [a-z_]* ([^;]*' /tmp/ant_default.txt | head -1)" > "$OUT/throughput.txt"
+  timeout "$(left 330)" python3 benchmarks/throughput.py --env Ant-v5 HalfCheetah-v5 --chunks 2 --chunk-steps 1000 \
+    --warmup 1500 --json "$OUT/throughput_graph.json" >> "$OUT/throughput.txt" 2>&1
+  echo "throughput default (compiled in CUDA graphs) rc=$?" >> "$OUT/throughput.txt"
+  timeout "$(left 420)" python3 benchmarks/throughput.py --env Ant-v5 HalfCheetah-v5 --chunks 2 --chunk-steps 1000 \
+    --warmup 1500 --td3x cuda_graph=true --json "$OUT/throughput.json" >> "$OUT/throughput.txt" 2>&1
+  echo "throughput cuda_graph=true rc=$?" >> "$OUT/throughput.txt"
+  sbx=""; python3 -c "import sbx" 2>/dev/null && sbx="sbx_procs"
+  for mps in on off; do
+    modes="td3x_procs $sbx"; [ $mps = on ] && modes="$modes batched"
+    budget=$(left $([ $mps = on ] && echo 505 || echo 585))
+    timeout $(( budget > 30 ? budget : 30 )) python3 benchmarks/seeds_scaling.py --env Ant-v5 --batch-size 256 \
+      --device cuda --seeds 16 --steps 200 --warmup 100 --learning-starts 500 --json "$OUT/seeds16_mps_$mps.json" \
+      --mps $mps --modes $modes >> "$OUT/seeds16_mps.txt" 2>&1
+    echo "seeds16 mps=$mps rc=$?" >> "$OUT/seeds16_mps.txt"
+  done
+  tail -n 30 "$OUT"/throughput.txt; grep -E "N=|rc=" "$OUT"/seeds16_mps.txt
+elif [ "$part" = measure ]; then
   # Three measurements, in one call of under 10 minutes (a session's 15 minutes of device time hold one):
   # 0. `python run.py env=ant`'s update line on the GPU (a short run: 10k random steps, then 300 gradient steps, so
   # eager; the folder stays in /tmp).
@@ -46,10 +73,10 @@ if [ "$part" = measure ]; then
   # 1. One seed: TD3X's default of a long run (auto: the compiled update in torch.compile's CUDA graphs), then
   # cuda_graph=True (gradient_step captured whole), each against SB3's and SBX's TD3 in one process, chunks alternated.
   timeout 110 python3 benchmarks/throughput.py --env Ant-v5 HalfCheetah-v5 --chunks 2 --chunk-steps 1000 \
-    --warmup 1000 --json "$OUT/throughput_graph.json" > "$OUT/throughput.txt" 2>&1
+    --warmup 1500 --json "$OUT/throughput_graph.json" > "$OUT/throughput.txt" 2>&1
   echo "throughput default (compiled in CUDA graphs) rc=$?" >> "$OUT/throughput.txt"
   timeout 100 python3 benchmarks/throughput.py --env Ant-v5 HalfCheetah-v5 --chunks 2 --chunk-steps 1000 \
-    --warmup 1000 --td3x cuda_graph=true --json "$OUT/throughput.json" >> "$OUT/throughput.txt" 2>&1
+    --warmup 1500 --td3x cuda_graph=true --json "$OUT/throughput.json" >> "$OUT/throughput.txt" 2>&1
   echo "throughput cuda_graph=true rc=$?" >> "$OUT/throughput.txt"
   # 2. Sixteen Ant seeds every way, the issue's goals first: 16 TD3X and 16 SBX processes under CUDA MPS and one
   # SeedBatch (pi(s) batched, the seeds in turn); then the processes without MPS and the batch collecting in 16
