@@ -131,6 +131,9 @@ class CompiledUpdate:
     def __init__(self, model: Any, mode: str | None = None):
         self.model = model
         self.stepped_aside: str | None = None
+        # In CUDA graphs (reduce-overhead) the outputs live in the graph's memory, which the next replay overwrites:
+        # the statistics of a train() call's gradient steps are copied out after each step.
+        self.copy_outputs = mode == "reduce-overhead"
         # A gradient_step of the user's own is compiled whole; TD3X's samples eagerly, then runs the compiled update.
         self.whole_step = bool(changed_hooks(model, ("gradient_step",)))
         compile_ = functools.partial(
@@ -152,10 +155,13 @@ class CompiledUpdate:
         args = (batch_size,) if self.whole_step else (model.sample_batch(batch_size),)  # step 4
         try:
             with _CompileSettings():
-                return self._compiled[update_actor](*args)
+                infos = self._compiled[update_actor](*args)
         except (th._dynamo.exc.TorchDynamoException, th._dynamo.exc.FailOnRecompileLimitHit) as error:
             # Raised while tracing or compiling, before the graph ran: nothing of this step has happened yet.
             return self._step_aside(why_not_one_graph(error), *args, update_actor)
+        if self.copy_outputs:
+            return tuple({key: value.clone() for key, value in info.items()} for info in infos)  # type: ignore[return-value]
+        return infos
 
     def _step_aside(self, why: str, batch_or_size: Any, update_actor: bool) -> Infos:
         """From now on the eager update, ``why`` said once; this step runs eagerly (on the batch already sampled)."""
