@@ -16,18 +16,21 @@ from stable_baselines3.common.type_aliases import ReplayBufferSamples
 th.set_num_threads(int(os.environ.get("SB3_TD3X_TEST_THREADS", "1")))
 
 
-def _inductor_cache_per_test_process() -> None:
-    """Each pytest-xdist process (and what it starts) compiles into a cache folder of its own: Inductor's one folder
-    shared by many processes compiling at once failed with "file too short" on a 16-core GPU machine (issue 35).
-    The folder is kept between runs (``<Inductor's default>/<worker>``), so a second run finds its kernels."""
+def _inductor_cache_for_test_processes() -> None:
+    """Where the pytest-xdist processes (and what they start) keep Inductor's compiled graphs, kept between runs so that
+    a second run finds them. On a CPU the workers share one folder (``<Inductor's default>/pytest``): a graph one of
+    them compiled (about 25 s of CPU on a cold cache) is found by the others, and torch 2.13 compiles each kernel under
+    a file lock. Where CUDA is, each worker has its own folder (``pytest_<worker>``): one folder shared by 14 workers
+    compiling at once failed with "file too short" on a 16-core GPU machine (torch 2.11)."""
     worker = os.environ.get("PYTEST_XDIST_WORKER")
     if worker and "TORCHINDUCTOR_CACHE_DIR" not in os.environ:
         from torch._inductor.runtime.cache_dir_utils import default_cache_dir
 
-        os.environ["TORCHINDUCTOR_CACHE_DIR"] = os.path.join(default_cache_dir(), f"pytest_{worker}")
+        folder = f"pytest_{worker}" if th.cuda.is_available() else "pytest"
+        os.environ["TORCHINDUCTOR_CACHE_DIR"] = os.path.join(default_cache_dir(), folder)
 
 
-_inductor_cache_per_test_process()
+_inductor_cache_for_test_processes()
 
 
 @pytest.fixture

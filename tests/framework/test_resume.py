@@ -12,6 +12,7 @@ import time
 import zipfile
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from conftest import stopped_and_resumed
@@ -168,13 +169,15 @@ def test_a_compiled_run_stopped_and_resumed_is_the_run_never_stopped(tmp_path):
     """The compiled update (what compile_update=None picks for a long run on a CPU; asked for here, the run being
     short) is deterministic through a stop and a resume: the same evaluations and weights, to the bit, as a run
     never stopped (the stop is a report that raises, which checkpoints as a signal does). 1000 steps: 300 compiled
-    updates before the stop at step 500, 500 after it."""
-    overrides = [*RUN, "logger=none", "algo.compile_update=true"]
+    updates before the stop at step 500, 500 after it. On Pendulum-v1 with 32-32 networks and batches of 64: the
+    graph of test_user_changes.py's stock case and test_seed_batch.py's compiled one, which Inductor's cache then
+    finds (a graph costs about 25 s of CPU to compile cold)."""
+    overrides = [*RUN, "env=pendulum", "algo.net_arch=[32,32]", "logger=none", "algo.compile_update=true"]
     overrides += ["total_timesteps=1000", "algo.learning_starts=200", "eval.freq=250"]
     reference, stopped = stopped_and_resumed(overrides, tmp_path, stop_at=500)
     summary = json.loads((stopped / "summary.json").read_text())
     assert summary["update_path"] == "compiled"
     assert [row[0] for row in curve(stopped)] == [250, 500, 750, 1000]
-    assert curve(stopped) == curve(reference)
+    np.testing.assert_array_equal(curve(stopped), curve(reference))  # to the bit; Pendulum measures no value: NaN
     for name, tensor in policy_weights(reference).items():
         torch.testing.assert_close(policy_weights(stopped)[name], tensor, rtol=0, atol=0, msg=name)
