@@ -22,7 +22,6 @@ import torch
 from omegaconf import DictConfig
 
 from sb3_td3x.common.redaction import redact
-from sb3_td3x.experiment.analysis.plots import plot_learning_curve
 from sb3_td3x.experiment.configs.algos import algorithm_class, build_algorithm
 from sb3_td3x.experiment.layout import LAST, LEARNING_CURVE_PNG
 from sb3_td3x.experiment.run.callbacks import Checkpointer, DivergenceCheck, PeriodicEvaluation, ProgressBar
@@ -247,6 +246,9 @@ def close_run(run: Run) -> None:
     run.closers = []
     if run.evaluation is not None and run.evaluation.history:
         try:
+            # Imported here: matplotlib costs 0.75 s at start-up, which a run that stops early (bad input) never needs.
+            from sb3_td3x.experiment.analysis.plots import plot_learning_curve
+
             plot_learning_curve(
                 run.evaluation.history,
                 run.run_dir / LEARNING_CURVE_PNG,
