@@ -153,6 +153,28 @@ def test_publish_copies_the_records_and_aggregates_them(tmp_path, hopper_runs):
     assert next(line for line in lines if line.startswith("| Hopper-v5, DDPG")).count("not started") == 5
 
 
+def test_publish_never_replaces_a_published_run_with_a_shorter_one(tmp_path, hopper_runs):
+    """Local runs of 600 steps where the published record of the same folder reached more: nothing is copied."""
+    copy_runs(hopper_runs, tmp_path)
+    docs = tmp_path / "docs"
+    published = docs / "runs" / "hopper" / "td3" / "seed0"
+    published.mkdir(parents=True)
+    longer = pd.read_csv(tmp_path / "runs" / "hopper" / "td3" / "seed0" / "evaluations.csv")
+    longer.loc[len(longer)] = longer.iloc[-1].to_dict() | {"timesteps": 200_000}
+    longer.to_csv(published / "evaluations.csv", index=False)
+    before = (published / "evaluations.csv").read_bytes()
+    out = subprocess.run(
+        ["bash", str(REPO / "scripts" / "publish_results.sh"), str(tmp_path / "runs")],
+        env={**os.environ, "PYTHON": sys.executable, "RESULTS_DOCS_DIR": str(docs), "RESULTS_PAGE": ""},
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert out.returncode == 2, out.stdout + out.stderr
+    assert "replace published runs with shorter ones" in out.stderr and "600 steps, its published record 200,000" in out.stderr
+    assert "Traceback" not in out.stderr
+    assert (published / "evaluations.csv").read_bytes() == before
+    assert sorted(path.name for path in published.iterdir()) == ["evaluations.csv"]
+
+
 def test_results_tables_refuse_a_page_without_markers(tmp_path):
     page = tmp_path / "results.md"
     page.write_text("# Results\nno markers\n")
