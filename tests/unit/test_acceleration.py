@@ -328,11 +328,18 @@ def test_a_changed_setting_captures_the_graphs_again():
     assert len(captures) == 4
 
 
-def test_each_test_process_compiles_into_its_own_inductor_cache():
-    """Concurrent compiles of the pytest-xdist processes do not share one cache folder (tests/conftest.py)."""
-    from torch._inductor.runtime.cache_dir_utils import cache_dir
+@pytest.mark.parametrize("cuda", [False, True], ids=["cpu", "cuda"])
+def test_the_test_processes_share_inductor_s_cache_on_a_cpu_and_not_where_cuda_is(cuda, monkeypatch):
+    """On a CPU the pytest-xdist processes share one Inductor cache folder, so that a graph one compiled is found by
+    the others; where CUDA is, each has its own (tests/conftest.py); a folder the caller set is kept."""
+    from conftest import _inductor_cache_for_test_processes
+    from torch._inductor.runtime.cache_dir_utils import default_cache_dir
 
-    worker = os.environ.get("PYTEST_XDIST_WORKER")
-    if worker is None:
-        pytest.skip("one test process (no pytest-xdist worker): nothing shares the cache")
-    assert cache_dir().endswith(os.sep + f"pytest_{worker}")
+    monkeypatch.setattr(th.cuda, "is_available", lambda: cuda)
+    monkeypatch.setenv("PYTEST_XDIST_WORKER", "gw5")
+    monkeypatch.delenv("TORCHINDUCTOR_CACHE_DIR", raising=False)
+    _inductor_cache_for_test_processes()
+    assert os.environ["TORCHINDUCTOR_CACHE_DIR"] == os.path.join(default_cache_dir(), "pytest_gw5" if cuda else "pytest")
+    monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", "/somewhere/else")
+    _inductor_cache_for_test_processes()
+    assert os.environ["TORCHINDUCTOR_CACHE_DIR"] == "/somewhere/else"
