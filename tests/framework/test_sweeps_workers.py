@@ -83,10 +83,18 @@ def test_a_worker_cut_off_past_the_grace_period_keeps_its_late_result(tmp_path):
     worker = start_worker("--output-dir", str(out), "--n-trials", "1", *heartbeat, "total_timesteps=3000")
     try:
         wait_until(lambda: rows(out, "trial_intermediate_values") > 0, worker)
-        worker.send_signal(signal.SIGSTOP)
-        time.sleep(3)  # past the grace period: its last heartbeat is more than 2 s old
         other = open_storage(storage, STUDY, heartbeat_interval=1, grace_period=2)
-        fail_stale_trials(optuna.load_study(study_name=STUDY, storage=other.storage))  # what any other worker does
+        for attempt in range(5):
+            worker.send_signal(signal.SIGSTOP)
+            time.sleep(3)  # past the grace period: its last heartbeat is more than 2 s old
+            try:
+                fail_stale_trials(optuna.load_study(study_name=STUDY, storage=other.storage))  # what any other worker does
+                break
+            except optuna.exceptions.StorageInternalError:
+                # Stopped in the middle of a write, the worker holds SQLite's lock ("database is locked" after 5 s):
+                # let it finish the write, and stop it again.
+                worker.send_signal(signal.SIGCONT)
+                time.sleep(0.3 * (attempt + 1))
         (stale,) = trials(storage)
         assert stale.state == TrialState.FAIL
         worker.send_signal(signal.SIGCONT)
