@@ -39,26 +39,17 @@ fi
 
 # A published run is never replaced by a shorter one: runs made here with fewer steps (a 100k-step table in the same
 # runs/results/<env>/<algo>/seed<k> folders as the published 200k ones, say) would overwrite its records.
-if ! "$python" - "$src" "$dst/runs" <<'PY'
-import csv, pathlib, sys
-src, published = (pathlib.Path(arg) for arg in sys.argv[1:])
-def steps(path):
-    with open(path) as file:
-        rows = list(csv.DictReader(file))
-    return int(float(rows[-1]["timesteps"])) if rows else 0
-shorter = [
-    f"{local.parent} reached {steps(local):,} steps, its published record {steps(old):,}"
-    for local in sorted(src.rglob("evaluations.csv"))
-    if "checkpoints" not in local.parts
-    and (old := published / local.relative_to(src)).is_file() and steps(old) > steps(local)
-]
-if shorter:
-    print("error: not publishing: it would replace published runs with shorter ones: " + "; ".join(shorter[:5])
-          + (f" (and {len(shorter) - 5} more)" if len(shorter) > 5 else "") + ". Publish runs of another length from "
-          "a folder of their own with RESULTS_DOCS_DIR set elsewhere, or finish these runs first", file=sys.stderr)
-    sys.exit(1)
-PY
-then
+status=0
+shorter=$("$python" scripts/results_tables.py --docs-dir "$dst" --shorter-runs "$src") || status=$?
+if ((status == 3)); then
+  shorter=${shorter//$'\n'/; }
+  echo "error: not publishing: it would replace published runs with shorter ones: ${shorter:0:600}." \
+    "Publish runs of another length from a folder of their own with RESULTS_DOCS_DIR set elsewhere, or finish these" \
+    "runs first" >&2
+  exit 2
+elif ((status != 0)); then
+  echo "error: not publishing: the check for shorter runs (scripts/results_tables.py --shorter-runs) failed with" \
+    "status $status (above)" >&2
   exit 2
 fi
 

@@ -18,6 +18,7 @@ a run folder, unless ``--seeds`` names them.
 
     python scripts/results_tables.py [--docs-dir docs/assets/results] [--page docs/results.md] [--seeds 0 1 2]
     python scripts/results_tables.py --groups    # one line per group: its name, then its <env>/<algo> folders
+    python scripts/results_tables.py --shorter-runs runs/results   # runs whose published record reached more steps
 
 A group whose published aggregate was made from runs whose records are no longer under ``<docs dir>/runs`` (records
 of an earlier machine, say) is left as it is, aggregate and table: rewriting it would drop those runs from the page.
@@ -68,6 +69,16 @@ HEADER = [
 ]
 
 
+def evaluations_of(run_dir: Path) -> pd.DataFrame | None:
+    """A run folder's ``evaluations.csv``, or ``None`` when it has none."""
+    return pd.read_csv(run_dir / "evaluations.csv") if (run_dir / "evaluations.csv").is_file() else None
+
+
+def last_step(evaluations: pd.DataFrame | None) -> int:
+    """The step of a run's last evaluation (0 without one)."""
+    return int(evaluations["timesteps"].iloc[-1]) if evaluations is not None and len(evaluations) else 0
+
+
 def seed_progress(run_dir: Path, needs_values: bool = False) -> str:
     """'200k', '85k of 200k', 'not started' or 'started, no evaluation yet' for one seed's run folder.
 
@@ -78,8 +89,8 @@ def seed_progress(run_dir: Path, needs_values: bool = False) -> str:
     target = None
     if (run_dir / "config.yaml").is_file():
         target = (yaml.safe_load((run_dir / "config.yaml").read_text()) or {}).get("total_timesteps")
-    evaluations = pd.read_csv(run_dir / "evaluations.csv") if (run_dir / "evaluations.csv").is_file() else None
-    reached = int(evaluations["timesteps"].iloc[-1]) if evaluations is not None and len(evaluations) else 0
+    evaluations = evaluations_of(run_dir)
+    reached = last_step(evaluations)
     if reached == 0:
         return "started, no evaluation yet"
     if needs_values and "value_estimate" not in evaluations:
@@ -233,6 +244,21 @@ def missing_runs(docs_dir: Path, group: str) -> list[str]:
     return missing
 
 
+def shorter_runs(runs: Path, docs_dir: Path) -> list[str]:
+    """The runs under ``runs`` whose published record (the same ``<env>/<algo>/seed<S>`` under ``<docs dir>/runs``)
+    reached more steps: publishing them would replace a longer run with a shorter one (a 100k-step table made in the
+    folders of the published 200k-step runs, say), so ``scripts/publish_results.sh`` refuses while there is one."""
+    shorter = []
+    for local in sorted(runs.rglob("evaluations.csv")):
+        if "checkpoints" in local.relative_to(runs).parts:
+            continue
+        relative = local.parent.relative_to(runs)
+        ours, published = (last_step(evaluations_of(folder)) for folder in (local.parent, docs_dir / "runs" / relative))
+        if published > ours:
+            shorter.append(f"{relative} reached {ours:,} steps, its published record {published:,}")
+    return shorter
+
+
 def hopper_sb3_tables(docs_dir: Path, seeds: list[int] | None) -> str:
     """TD3X against SB3's TD3 on Hopper: the two rows, then their difference (once both have finished seeds)."""
     rows = table(docs_dir, "hopper_td3x_vs_sb3", "algo", HOPPER_SB3, seeds, HOPPER_SB3_SEEDS)
@@ -283,11 +309,19 @@ def main(argv: list[str] | None = None) -> int:
         "--missing-runs", metavar="GROUP", help="print the runs GROUP's aggregate was made from whose records are missing; "
         "exit 3 when there are any"
     )  # fmt: skip
+    parser.add_argument(
+        "--shorter-runs", metavar="RUNS", type=Path, help="print the runs under RUNS whose published record reached more "
+        "steps; exit 3 when there are any"
+    )  # fmt: skip
     args = parser.parse_args(argv)
     if args.groups:
         for name, folders in GROUPS.items():
             print(name, *folders)
         return 0
+    if args.shorter_runs:
+        shorter = shorter_runs(args.shorter_runs, args.docs_dir)
+        print("\n".join(shorter))
+        return 3 if shorter else 0
     if args.missing_runs:
         missing = missing_runs(args.docs_dir, args.missing_runs)
         print("\n".join(missing))
