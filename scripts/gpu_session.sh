@@ -36,63 +36,51 @@ export PYTHONPATH=/tmp/site:$PWD MUJOCO_GL=egl PYTHONUNBUFFERED=1
   >> "$OUT/machine.txt" 2>&1
 left() { echo $(( ${1} - (SECONDS - start) )); }  # seconds left of this part's budget
 
-if [ "$part" = session ]; then
-  # One session's whole check in one call of under 10 minutes: the GPU test layer first (the exactness of the CUDA
-  # paths: the default of a long run compiled inside CUDA graphs, SB3 equality, seed batches), then the measure part's
-  # tables with shorter limits. Eight files come back at most, so run.py's update line joins throughput.txt.
-  timeout 150 python3 -m pytest -q -p no:cacheprovider -n 11 --timeout 140 -rfEs --durations=12 tests/gpu \
-    > "$OUT/tests_gpu.txt" 2>&1
-  echo "tests/gpu rc=$?" >> "$OUT/tests_gpu.txt"; tail -n 16 "$OUT/tests_gpu.txt"
-  timeout 50 python3 run.py env=ant total_timesteps=10300 eval.freq=100000 logger=none progress_bar=false \
+# The one-seed and 16-seed tables, each command cut at a deadline (seconds from this part's start; $1 is the run.py
+# line's own limit, then the deadlines of the two throughput calls and the two 16-seed calls, then extra modes for the
+# 16 seeds without MPS), so that a slow one does not take the others' results with it:
+# 0. `python run.py env=ant`'s update line on the GPU (a short run: 10k random steps, then 300 gradient steps, so
+#    eager; the folder stays in /tmp), first in throughput.txt (at most 8 files come back).
+# 1. One seed: TD3X's default of a long run (auto: the compiled update in torch.compile's CUDA graphs), then
+#    cuda_graph=True (gradient_step captured whole), each against SB3's and SBX's TD3 in one process, chunks alternated.
+# 2. Sixteen Ant seeds: 16 TD3X and 16 SBX processes under CUDA MPS and one SeedBatch (pi(s) batched, the seeds in
+#    turn); then the processes without MPS. One SB3 process is each call's baseline. Each measurement's line is
+#    printed as it ends (a call cut by its time limit keeps the lines before).
+tables() {
+  local ant_limit=$1 default_end=$2 graph_end=$3 mps_on_end=$4 mps_off_end=$5 mps_off_extra=${6:-} sbx="" mps budget
+  timeout "$ant_limit" python3 run.py env=ant total_timesteps=10300 eval.freq=100000 logger=none progress_bar=false \
     run_dir=/tmp/ant_default > /tmp/ant_default.txt 2>&1
   echo "run.py env=ant rc=$?; $(grep -o 'update: [a-z_]* ([^;]*' /tmp/ant_default.txt | head -1)" > "$OUT/throughput.txt"
-  timeout "$(left 330)" python3 benchmarks/throughput.py --env Ant-v5 HalfCheetah-v5 --chunks 2 --chunk-steps 1000 \
-    --warmup 1500 --json "$OUT/throughput_graph.json" >> "$OUT/throughput.txt" 2>&1
+  timeout "$(left "$default_end")" python3 benchmarks/throughput.py --env Ant-v5 HalfCheetah-v5 --chunks 2 \
+    --chunk-steps 1000 --warmup 1500 --json "$OUT/throughput_graph.json" >> "$OUT/throughput.txt" 2>&1
   echo "throughput default (compiled in CUDA graphs) rc=$?" >> "$OUT/throughput.txt"
-  timeout "$(left 420)" python3 benchmarks/throughput.py --env Ant-v5 HalfCheetah-v5 --chunks 2 --chunk-steps 1000 \
-    --warmup 1500 --td3x cuda_graph=true --json "$OUT/throughput.json" >> "$OUT/throughput.txt" 2>&1
+  timeout "$(left "$graph_end")" python3 benchmarks/throughput.py --env Ant-v5 HalfCheetah-v5 --chunks 2 \
+    --chunk-steps 1000 --warmup 1500 --td3x cuda_graph=true --json "$OUT/throughput.json" >> "$OUT/throughput.txt" 2>&1
   echo "throughput cuda_graph=true rc=$?" >> "$OUT/throughput.txt"
-  sbx=""; python3 -c "import sbx" 2>/dev/null && sbx="sbx_procs"
+  python3 -c "import sbx" 2>/dev/null && sbx="sbx_procs"
   for mps in on off; do
-    modes="td3x_procs $sbx"; [ $mps = on ] && modes="$modes batched"
-    budget=$(left $([ $mps = on ] && echo 505 || echo 585))
+    budget=$(left "$([ $mps = on ] && echo "$mps_on_end" || echo "$mps_off_end")")
+    # shellcheck disable=SC2046,SC2086  # the modes are words
     timeout $(( budget > 30 ? budget : 30 )) python3 benchmarks/seeds_scaling.py --env Ant-v5 --batch-size 256 \
       --device cuda --seeds 16 --steps 200 --warmup 100 --learning-starts 500 --json "$OUT/seeds16_mps_$mps.json" \
-      --mps $mps --modes $modes >> "$OUT/seeds16_mps.txt" 2>&1
+      --mps $mps --modes td3x_procs $sbx $([ $mps = on ] && echo batched || echo "$mps_off_extra") \
+      >> "$OUT/seeds16_mps.txt" 2>&1
     echo "seeds16 mps=$mps rc=$?" >> "$OUT/seeds16_mps.txt"
   done
   tail -n 30 "$OUT"/throughput.txt; grep -E "N=|rc=" "$OUT"/seeds16_mps.txt
+}
+
+if [ "$part" = session ]; then
+  # One session's whole check in one call of under 10 minutes: the GPU test layer first (the exactness of the CUDA
+  # paths: the default of a long run compiled inside CUDA graphs, SB3 equality, seed batches), then the tables.
+  timeout 150 python3 -m pytest -q -p no:cacheprovider -n 11 --timeout 140 -rfEs --durations=12 tests/gpu \
+    > "$OUT/tests_gpu.txt" 2>&1
+  echo "tests/gpu rc=$?" >> "$OUT/tests_gpu.txt"; tail -n 16 "$OUT/tests_gpu.txt"
+  tables 50 330 420 505 585
 elif [ "$part" = measure ]; then
-  # Three measurements, in one call of under 10 minutes (a session's 15 minutes of device time hold one):
-  # 0. `python run.py env=ant`'s update line on the GPU (a short run: 10k random steps, then 300 gradient steps, so
-  # eager; the folder stays in /tmp).
-  timeout 75 python3 run.py env=ant total_timesteps=10300 eval.freq=100000 logger=none progress_bar=false \
-    run_dir=/tmp/ant_default > /tmp/ant_default.txt 2>&1
-  echo "run.py env=ant rc=$?; $(grep -o 'update: [a-z_]* ([^;]*' /tmp/ant_default.txt | head -1)" > "$OUT/ant_default.txt"
-  cat "$OUT/ant_default.txt"
-  # 1. One seed: TD3X's default of a long run (auto: the compiled update in torch.compile's CUDA graphs), then
-  # cuda_graph=True (gradient_step captured whole), each against SB3's and SBX's TD3 in one process, chunks alternated.
-  timeout 110 python3 benchmarks/throughput.py --env Ant-v5 HalfCheetah-v5 --chunks 2 --chunk-steps 1000 \
-    --warmup 1500 --json "$OUT/throughput_graph.json" > "$OUT/throughput.txt" 2>&1
-  echo "throughput default (compiled in CUDA graphs) rc=$?" >> "$OUT/throughput.txt"
-  timeout 100 python3 benchmarks/throughput.py --env Ant-v5 HalfCheetah-v5 --chunks 2 --chunk-steps 1000 \
-    --warmup 1500 --td3x cuda_graph=true --json "$OUT/throughput.json" >> "$OUT/throughput.txt" 2>&1
-  echo "throughput cuda_graph=true rc=$?" >> "$OUT/throughput.txt"
-  # 2. Sixteen Ant seeds every way, the issue's goals first: 16 TD3X and 16 SBX processes under CUDA MPS and one
-  # SeedBatch (pi(s) batched, the seeds in turn); then the processes without MPS and the batch collecting in 16
-  # threads. One SB3 process is each call's baseline. Each measurement's line is printed as it ends (a call cut by its
-  # time limit keeps the lines before).
-  sbx=""; python3 -c "import sbx" 2>/dev/null && sbx="sbx_procs"
-  seeds16() {  # $1: the call's time budget, $2: json name, the rest: seeds_scaling arguments
-    local budget=$1 name=$2; shift 2
-    timeout $(( budget > 30 ? budget : 30 )) python3 benchmarks/seeds_scaling.py --env Ant-v5 --batch-size 256 \
-      --device cuda --seeds 16 --steps 200 --warmup 100 --learning-starts 500 --json "$OUT/$name.json" "$@" \
-      >> "$OUT/seeds16_mps.txt" 2>&1
-    echo "seeds16 $name rc=$?" >> "$OUT/seeds16_mps.txt"
-  }
-  seeds16 "$(left 480)" seeds16_mps_on --mps on --modes td3x_procs $sbx batched
-  seeds16 "$(left 570)" seeds16_mps_off --mps off --modes td3x_procs $sbx batched_threads
-  tail -n 30 "$OUT"/throughput.txt; grep -E "N=|rc=" "$OUT"/seeds16_mps.txt
+  # The tables alone, in one call of under 10 minutes (a session's 15 minutes of device time hold one), the batch
+  # also collecting in 16 threads without MPS.
+  tables 75 185 285 480 570 batched_threads
 elif [ "$part" = tests_cuda ]; then
   # The GPU test layer, then every test that names CUDA, a device or graphs.
   timeout 300 python3 -m pytest -q -p no:cacheprovider -n 6 --timeout 160 -rs tests/gpu \
