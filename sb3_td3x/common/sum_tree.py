@@ -5,12 +5,19 @@ lines 55-58) takes the cumulative sum of every priority at each batch and search
 at every gradient step (a million floats on MuJoCo). The tree below keeps the partial sums instead: a draw walks
 down its levels and an update walks up, ``depth`` steps of fixed-shape tensor operations each (4 for a million
 transitions), with no host synchronisation and no Python branch on tensor values, so that ``torch.compile`` and CUDA
-graphs take them as they are.
+graphs take them as they are. Outside a compiled update, ``backend`` runs :meth:`SumTree.find` and :meth:`SumTree.set`
+through ``torch.compile`` too: eagerly, each level is a dozen tensor operations of a few microseconds each.
 """
 
 from __future__ import annotations
 
+import functools
+import logging
+from collections.abc import Callable
+
 import torch as th
+
+log = logging.getLogger(__name__)
 
 #: Children per node: 32 ** 4 leaves (about a million transitions) in 4 levels above the leaves.
 FANOUT = 32
@@ -28,6 +35,12 @@ class SumTree:
     :param device: where the levels live
     :param with_maxima: also keep the maxima (the largest leaf is then :attr:`max`, in the same operations)
     """
+
+    #: ``torch.compile``'s backend for :meth:`find` and :meth:`set` where they are called outside a compiled function
+    #: (a batch drawn before the compiled update, a new transition's priority); ``None``: eager kernels. TD3X's
+    #: compiled update on a CPU sets its own (``update_paths.choose``). The same tree either way, to the bit where the
+    #: backend's sums round as eager ones (``aot_eager``), and to float rounding of the inner sums otherwise.
+    backend: str | None = None
 
     def __init__(self, size: int, device: th.device | str = "cpu", with_maxima: bool = False):
         depth = 1
@@ -63,13 +76,7 @@ class SumTree:
         :param indices: shape ``(n,)``, long, each in ``[0, size)``
         :param values: shape ``(n,)``, non-negative
         """
-        self.sums[0].scatter_reduce_(0, indices, values.to(self.sums[0].dtype), reduce="amax", include_self=False)
-        nodes = indices
-        for k in range(1, len(self.sums)):
-            nodes = nodes // FANOUT
-            self.sums[k].index_put_((nodes,), self.sums[k - 1].view(-1, FANOUT)[nodes].sum(1))
-            if self.maxima is not None:
-                self.maxima[k].index_put_((nodes,), self.maxima[k - 1].view(-1, FANOUT)[nodes].amax(1))
+        self._run(_set, 1, self.sums, self.maxima, indices, values)
 
     def find(self, mass: th.Tensor) -> th.Tensor:
         """For each ``mass`` in ``[0, total)``, the leaf ``i`` with ``c_{i-1} < mass <= c_i``, ``c`` the cumulative sums
@@ -80,24 +87,26 @@ class SumTree:
         :param mass: shape ``(n,)``
         :return: the leaves' indices, shape ``(n,)``, long
         """
-        node = th.zeros(mass.shape, dtype=th.long, device=mass.device)
-        mass = mass.clamp(min=th.finfo(mass.dtype).tiny)
-        for k in range(len(self.sums) - 2, -1, -1):
-            children = self.sums[k].view(-1, FANOUT)[node]  # (n, FANOUT)
-            running = children.cumsum(1)
-            mass = th.minimum(mass, running[:, -1])
-            child = (running < mass.unsqueeze(1)).sum(1)  # the first child whose running sum reaches the mass
-            before = running.gather(1, (child - 1).clamp(min=0).unsqueeze(1)).squeeze(1)
-            mass = mass - th.where(child > 0, before, th.zeros_like(before))
-            node = node * FANOUT + child
-        return node
+        return self._run(_find, 0, self.sums, mass)
+
+    def _run(self, fn: Callable[..., th.Tensor | None], which: int, *args: object) -> th.Tensor | None:
+        """``fn(*args)``, through ``torch.compile`` (:attr:`backend`) outside a compiled function; a compilation that
+        fails (a missing compiler, say) is said once and the tree goes on eagerly."""
+        if self.backend is None or th.compiler.is_compiling():
+            return fn(*args)
+        try:
+            return _compiled(self.backend)[which](*args)
+        except th._dynamo.exc.TorchDynamoException as error:  # raised while compiling, before the graph ran
+            log.warning("SumTree: torch.compile(backend=%r) failed (%s): eager from now on", self.backend, error)
+            self.backend = None
+            return fn(*args)
 
     def to(self, device: th.device | str) -> SumTree:
         """This tree on ``device`` (itself when it is there already)."""
         if self.sums[0].device == th.device(device):
             return self
         moved = SumTree.__new__(SumTree)
-        moved.size = self.size
+        moved.size, moved.backend = self.size, self.backend
         moved.sums = [level.to(device) for level in self.sums]
         moved.maxima = None if self.maxima is None else [moved.sums[0]] + [level.to(device) for level in self.maxima[1:]]
         return moved
@@ -105,6 +114,47 @@ class SumTree:
     def nbytes(self) -> int:
         levels = self.sums + (self.maxima[1:] if self.maxima is not None else [])
         return sum(level.numel() * level.element_size() for level in levels)
+
+
+def _set(sums: list[th.Tensor], maxima: list[th.Tensor] | None, indices: th.Tensor, values: th.Tensor) -> None:
+    """:meth:`SumTree.set` on the levels ``sums`` (and ``maxima``)."""
+    values = values.to(sums[0].dtype)
+    if th.compiler.is_compiling() and len(indices) <= 4096:
+        # The same leaves as the scatter below, in a form Inductor writes in place: each value replaced by the largest
+        # given for its leaf (so repeated writes agree), then an indexed write. Inductor copies the whole leaf level
+        # for a scatter_reduce_ (0.6 ms a call for a million leaves on a CPU).
+        same = indices.unsqueeze(1) == indices.unsqueeze(0)
+        sums[0].index_put_((indices,), th.where(same, values.unsqueeze(0), values.new_tensor(-th.inf)).amax(1))
+    else:
+        sums[0].scatter_reduce_(0, indices, values, reduce="amax", include_self=False)
+    nodes = indices
+    for k in range(1, len(sums)):
+        nodes = nodes // FANOUT
+        sums[k].index_put_((nodes,), sums[k - 1].view(-1, FANOUT)[nodes].sum(1))
+        if maxima is not None:
+            maxima[k].index_put_((nodes,), maxima[k - 1].view(-1, FANOUT)[nodes].amax(1))
+
+
+def _find(sums: list[th.Tensor], mass: th.Tensor) -> th.Tensor:
+    """:meth:`SumTree.find` on the levels ``sums``."""
+    node = th.zeros(mass.shape, dtype=th.long, device=mass.device)
+    mass = mass.clamp(min=th.finfo(mass.dtype).tiny)
+    for k in range(len(sums) - 2, -1, -1):
+        children = sums[k].view(-1, FANOUT)[node]  # (n, FANOUT)
+        running = children.cumsum(1)
+        mass = th.minimum(mass, running[:, -1])
+        child = (running < mass.unsqueeze(1)).sum(1)  # the first child whose running sum reaches the mass
+        before = running.gather(1, (child - 1).clamp(min=0).unsqueeze(1)).squeeze(1)
+        mass = mass - th.where(child > 0, before, th.zeros_like(before))
+        node = node * FANOUT + child
+    return node
+
+
+@functools.cache
+def _compiled(backend: str) -> tuple[Callable[..., th.Tensor], Callable[..., None]]:
+    """:func:`_find` and :func:`_set` through ``torch.compile`` with ``backend``: one graph per shape of the tree and
+    of the batch, shared by every tree (their levels are the graphs' inputs)."""
+    return th.compile(_find, fullgraph=True, backend=backend), th.compile(_set, fullgraph=True, backend=backend)
 
 
 __all__ = ["FANOUT", "SumTree"]

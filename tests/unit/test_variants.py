@@ -241,11 +241,18 @@ def test_stock_networks_draw_sb3s_initial_weights():
 
 
 # --- the sum tree ------------------------------------------------------------------------------------------------------
+# backend: find and set through torch.compile (a compiled update's, outside its graph), with AOTAutograd's eager kernels:
+# the same sums to the bit, so any difference is the compiled form's (set writes repeated leaves another way there).
+BACKENDS = pytest.mark.parametrize("backend", [None, "aot_eager"], ids=["eager", "compiled"])
+
+
+@BACKENDS
 @pytest.mark.parametrize("size", [5, 32, 1000, 40_000])
-def test_the_sum_tree_finds_what_searchsorted_finds(size):
+def test_the_sum_tree_finds_what_searchsorted_finds(size, backend):
     g = th.Generator().manual_seed(size)
     leaves = th.randint(0, 5, (size,), generator=g).float()  # integers: every sum exact, ties and zeros included
     tree = SumTree(size, with_maxima=True)
+    tree.backend = backend
     tree.set(th.arange(size), leaves)
     th.testing.assert_close(tree.total, leaves.sum().reshape(1), rtol=0, atol=0)
     assert float(tree.max) == float(leaves.max())
@@ -258,8 +265,10 @@ def test_the_sum_tree_finds_what_searchsorted_finds(size):
     assert (leaves[found] > 0).all()
 
 
-def test_the_sum_tree_keeps_the_larger_value_of_a_repeated_index_and_sums_from_children():
+@BACKENDS
+def test_the_sum_tree_keeps_the_larger_value_of_a_repeated_index_and_sums_from_children(backend):
     tree = SumTree(100, with_maxima=True)
+    tree.backend = backend
     tree.set(th.tensor([3, 7, 3, 3]), th.tensor([2.0, 5.0, 9.0, 4.0]))
     assert float(tree.leaves[3]) == 9.0 and float(tree.total) == 14.0 and float(tree.max) == 9.0
     tree.set(th.tensor([3]), th.tensor([1.0]))  # lowered: the maximum and the sums follow
@@ -267,6 +276,7 @@ def test_the_sum_tree_keeps_the_larger_value_of_a_repeated_index_and_sums_from_c
     clone = pickle.loads(pickle.dumps(tree))
     assert all(th.equal(a, b) for a, b in zip(clone.sums, tree.sums))
     assert clone.maxima[0] is clone.sums[0]  # the leaves stay shared
+    assert clone.backend == backend  # a resumed run's tree runs as the run's did
 
 
 # --- the prioritised buffer ------------------------------------------------------------------------------------------

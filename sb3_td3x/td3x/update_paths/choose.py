@@ -29,12 +29,19 @@ def choose_update(model: Any) -> UpdateChoice:
     (:func:`~sb3_td3x.td3x.update_paths.compiled.decide_compile`; on a GPU inside CUDA graphs) or ``gradient_step``
     itself, eagerly (the table of :mod:`sb3_td3x.td3x.update_paths`). Every way runs the model's hooks as written."""
     if model.cuda_graph:
-        return UpdateChoice("cuda_graph", model.cuda_graph_reason, GraphedGradientStep(model))
-    if decide_compile(model):
+        choice = UpdateChoice("cuda_graph", model.cuda_graph_reason, GraphedGradientStep(model))
+    elif decide_compile(model):
         graphs = model.device.type == "cuda" and model.cuda_graph_request is None
         how = "the hooks as written, one graph" + (" in CUDA graphs (torch.compile's reduce-overhead)" if graphs else "")
-        return UpdateChoice("compiled", f"{model.compile_reason}; {how}", CompiledUpdate(model, "reduce-overhead" if graphs else None))
-    return UpdateChoice("eager", f"{model.compile_reason}; the hooks as written, eagerly", model.gradient_step)
+        choice = UpdateChoice("compiled", f"{model.compile_reason}; {how}", CompiledUpdate(model, "reduce-overhead" if graphs else None))
+    else:
+        choice = UpdateChoice("eager", f"{model.compile_reason}; the hooks as written, eagerly", model.gradient_step)
+    if (tree := getattr(model.replay_buffer, "priorities", None)) is not None:
+        # A prioritised buffer's draws and new transitions' writes, outside the update's graph: compiled with it on a
+        # CPU (a third of the eager time; measured in docs/variants.md). The tree's code, not the user's.
+        on_cpu = choice.path == "compiled" and model.device.type == "cpu"
+        tree.backend = CompiledUpdate.backend if on_cpu else None
+    return choice
 
 
 __all__ = ["UpdateChoice", "choose_update"]
