@@ -1,6 +1,5 @@
 from sb3_td3x.td3x.policies import CnnPolicy, MlpPolicy, MultiInputPolicy, TD3XCritic, TD3XPolicy
 from sb3_td3x.td3x.presets import DDPG, PRESETS, preset_kwargs
-from sb3_td3x.td3x.seed_batch import SeedBatch
 from sb3_td3x.td3x.td3x import TD3X, UnsupportedActionSpace
 
 __all__ = [
@@ -13,6 +12,5 @@ __all__ = [
     "TD3XCritic",
     "TD3XPolicy",
     "UnsupportedActionSpace",
-    "SeedBatch",
     "preset_kwargs",
 ]

@@ -351,17 +351,17 @@ class PerturbActor(BaseCallback):
 
 def _count_prefetched(monkeypatch):
     """How many collection steps took a prefetched pi(s), per seed."""
-    from sb3_td3x.td3x.update_paths import exploration
+    from sb3_td3x.seeds import actions
 
     taken = {}
-    valid = exploration.PrefetchedAction.valid_for
+    valid = actions.PrefetchedAction.valid_for
 
     def counting(self, model):
         ok = valid(self, model)
         taken[model.seed] = taken.get(model.seed, 0) + ok
         return ok
 
-    monkeypatch.setattr(exploration.PrefetchedAction, "valid_for", counting)
+    monkeypatch.setattr(actions.PrefetchedAction, "valid_for", counting)
     return taken
 
 
@@ -419,7 +419,7 @@ def test_the_batched_actions_test_fails_when_the_rows_are_mixed_up(monkeypatch):
     """The seeds' rows of the batched pi(s) swapped: the collections differ from the lone runs, and it is seen."""
     from dataclasses import replace
 
-    from sb3_td3x.td3x import seed_batch
+    from sb3_td3x.seeds import batch as seed_batch
 
     prefetch = seed_batch.prefetch_actions
 
@@ -445,7 +445,7 @@ def test_an_interrupted_wait_lets_every_collection_thread_finish(monkeypatch):
     seed goes on collecting behind a checkpoint."""
     from concurrent.futures import ThreadPoolExecutor
 
-    from sb3_td3x.td3x import seed_batch
+    from sb3_td3x.seeds import batch as seed_batch
 
     calls = []
     real_wait = seed_batch.wait

@@ -19,7 +19,7 @@ from sb3_td3x.experiment.run.checkpoints import last_step
 from sb3_td3x.experiment.run.folder import NEW, RESTARTED
 from sb3_td3x.experiment.run.train import Run, close_run, finish, prepare
 from sb3_td3x.experiment.stops import StopOnSignal
-from sb3_td3x.td3x.seed_batch import SeedBatch, acting_as, current_seed
+from sb3_td3x.seeds import SeedBatch, acting_as, current_seed
 
 log = logging.getLogger(__name__)
 

@@ -15,6 +15,7 @@ way here runs those hooks as written; none has code of its own for a step of TD3
 =================  ============================================================================================
 
 :func:`~.choose.choose_update` picks one from the machine and the run (``compile_update``, ``cuda_graph``, the run's
-length, a compiler), never from the user's code, and says why. Collection's pi(s), and many seeds' pi(s) at once, are
-in :mod:`.exploration`. Imports go one way: ``hooks``, ``optim`` <- the paths <- ``choose`` <- ``td3x``.
+length, a compiler), never from the user's code, and says why. Collection's pi(s) is in :mod:`.exploration` (many
+seeds' at once in :mod:`sb3_td3x.seeds.actions`). Imports go one way: ``hooks``, ``optim`` <- the paths <- ``choose``
+<- ``td3x`` <- ``sb3_td3x.seeds``.
 """

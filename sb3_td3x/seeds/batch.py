@@ -14,7 +14,7 @@ its model's own ``train()``: the update its lone run would run, so seed ``i`` co
 bit. Each model draws from its own random streams (:class:`~sb3_td3x.common.random_streams.RandomStreams`), detached
 where its lone run stands; code that may draw from the global generators runs with its seed's streams installed as
 them (:func:`_may_draw_from_globals`). The seeds collect in turn, or in ``collect_threads`` threads, and on a GPU pi(s)
-of all seeds is one vmapped call (:func:`~.update_paths.exploration.prefetch_actions`): docs/seeds.md says how each
+of all seeds is one vmapped call (:func:`~sb3_td3x.seeds.actions.prefetch_actions`): docs/seeds.md says how each
 works, and what was measured.
 """
 
@@ -38,8 +38,8 @@ from stable_baselines3.common.type_aliases import MaybeCallback, RolloutReturn
 from sb3_td3x.common import denormals
 from sb3_td3x.common.buffers import TensorReplayBuffer
 from sb3_td3x.common.random_streams import RandomStreams, detached_streams
+from sb3_td3x.seeds.actions import prefetch_actions
 from sb3_td3x.td3x.td3x import TD3X
-from sb3_td3x.td3x.update_paths.exploration import prefetch_actions
 
 log = logging.getLogger(__name__)
 
