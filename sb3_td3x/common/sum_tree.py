@@ -106,7 +106,8 @@ class SumTree:
         if self.sums[0].device == th.device(device):
             return self
         moved = SumTree.__new__(SumTree)
-        moved.size, moved.backend = self.size, self.backend
+        moved.size = self.size
+        moved.backend = self.backend if th.device(device).type == "cpu" else None  # compiled on a CPU only (choose_update)
         moved.sums = [level.to(device) for level in self.sums]
         moved.maxima = None if self.maxima is None else [moved.sums[0]] + [level.to(device) for level in self.maxima[1:]]
         return moved
