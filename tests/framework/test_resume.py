@@ -81,6 +81,10 @@ def test_sigterm_then_resume_finishes_the_same_run(tmp_path):
     assert (stopped / ".hydra" / "config.yaml").is_file() and list((stopped / ".hydra").glob("resumed_*"))
     sessions = [json.loads(line) for line in (stopped / "provenance.jsonl").read_text().splitlines()]
     assert [session["at_step"] for session in sessions] == [0, stopped_at]  # one line per session, for the results pages
+    updates = json.loads((stopped / "summary.json").read_text())["update_sessions"]  # each session's update
+    assert [(u["from_step"], u["update_path"]) for u in updates] == [(0, "eager"), (stopped_at, "eager")]
+    never_stopped = json.loads((reference / "summary.json").read_text())["update_sessions"]
+    assert [(u["from_step"], u["update_path"]) for u in never_stopped] == [(0, "eager")]
 
 
 def test_resume_takes_the_saved_config_and_the_overrides_a_resume_may_make(tmp_path):
@@ -177,6 +181,9 @@ def test_a_compiled_run_stopped_and_resumed_is_the_run_never_stopped(tmp_path):
     reference, stopped = stopped_and_resumed(overrides, tmp_path, stop_at=500)
     summary = json.loads((stopped / "summary.json").read_text())
     assert summary["update_path"] == "compiled"
+    # Each session's update, kept through the checkpoint: the record of the stopped run names both sessions'.
+    assert [(s["from_step"], s["update_path"]) for s in summary["update_sessions"]] == [(0, "compiled"), (500, "compiled")]
+    assert summary["update_sessions"][1]["update_reason"] == summary["update_reason"]
     assert [row[0] for row in curve(stopped)] == [250, 500, 750, 1000]
     np.testing.assert_array_equal(curve(stopped), curve(reference))  # to the bit; Pendulum measures no value: NaN
     for name, tensor in policy_weights(reference).items():

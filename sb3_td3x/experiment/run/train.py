@@ -71,6 +71,21 @@ class Run:
     run_name: str = ""
     succeeded: bool = False
     trained_together: list[int] | None = None  # the seeds of its process's SeedBatch
+    #: How the update ran in the sessions before this one (from the checkpoint resumed), oldest first.
+    earlier_sessions: list[dict[str, Any]] = field(default_factory=list)
+    session_start: int = 0  # the step this session started at
+
+    def update_sessions(self) -> list[dict[str, Any]]:
+        """How the update ran in each session of the run, oldest first: the step it started at, its ``update_path``
+        and ``update_reason`` (None before its first ``train()``, and for SB3's TD3). Saved with each checkpoint, so
+        a resumed run's records name every session's, as far as the weights it resumed go."""
+        model = self.model
+        now = {
+            "from_step": self.session_start,
+            "update_path": getattr(model, "update_path", None),
+            "update_reason": getattr(model, "update_reason", None),
+        }
+        return [*self.earlier_sessions, now]
 
 
 def prepare(cfg: DictConfig, how: str) -> Run:
@@ -172,16 +187,19 @@ def _callbacks(run: Run, eval_env: Any, config: dict[str, Any], experiment_state
         value_bias=cfg.eval.value_bias,
         value_horizon_tolerance=cfg.eval.value_horizon_tolerance,
     )
+    run.session_start = run.model.num_timesteps
     checkpointer = run.checkpointer = Checkpointer(
         run.run_dir,
         cfg.checkpoint.freq,
-        experiment_state=lambda: {"evaluation": evaluation.state_dict()},
+        experiment_state=lambda: {"evaluation": evaluation.state_dict(), "update_sessions": run.update_sessions()},
         save_best=cfg.checkpoint.save_best,
         best_replay_buffer=cfg.checkpoint.best_replay_buffer,
         config=config,
     )
     if experiment_state is not None:
         evaluation.load_state_dict(experiment_state["evaluation"])
+        # A checkpoint written before the sessions were kept has none: the record then starts at this session.
+        run.earlier_sessions = list(experiment_state.get("update_sessions", []))
         checkpointer.best_mean_return = evaluation.best_mean_return
     evaluation.listeners.append(checkpointer.on_evaluation)
     if run.progress is not None:
@@ -206,9 +224,11 @@ def finish(run: Run) -> float:
         "final_mean_return": final["mean_return"],
         "final_std_return": final["std_return"],
         "best_mean_return": evaluation.best_mean_return,
-        # How TD3X's update ran and why (sb3_td3x.td3x.update_paths.choose, or the seed batch's); None for SB3's TD3
+        # How TD3X's update ran and why (sb3_td3x.td3x.update_paths.choose, or the seed batch's), in this session and
+        # in each session of a resumed run; None for SB3's TD3
         "update_path": getattr(model, "update_path", None),
         "update_reason": getattr(model, "update_reason", None),
+        "update_sessions": run.update_sessions(),
         "exploration_path": getattr(model, "exploration_path", None),
         "wall_time_s_this_session": time.time() - run.started,
         "provenance": provenance(),
