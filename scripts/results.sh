@@ -7,7 +7,8 @@
 #   JOBS=2 bash scripts/results.sh ...                                  # parallel runs (default: one per core)
 #   RUN_OVERRIDES="debug=smoke" bash scripts/results.sh ...             # extra run.py overrides for new runs
 #
-# Stop with Ctrl-C (or kill the process group): each run checkpoints on SIGINT/SIGTERM before it exits.
+# Stop with Ctrl-C, or `kill -TERM -- -<process group>` when it runs in the background (a background job ignores
+# SIGINT, so xargs would go on to the next run): each run checkpoints on SIGINT/SIGTERM before it exits.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 steps=${1:?usage: bash scripts/results.sh STEPS env:algo:seed [env:algo:seed ...]}
