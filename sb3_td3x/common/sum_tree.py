@@ -96,7 +96,7 @@ class SumTree:
             return fn(*args)
         try:
             return _compiled(self.backend)[which](*args)
-        except th._dynamo.exc.TorchDynamoException as error:  # raised while compiling, before the graph ran
+        except (th._dynamo.exc.TorchDynamoException, th._dynamo.exc.FailOnRecompileLimitHit) as error:  # before it ran
             log.warning("SumTree: torch.compile(backend=%r) failed (%s): eager from now on", self.backend, error)
             self.backend = None
             return fn(*args)
