@@ -76,7 +76,7 @@ class SumTree:
         :param indices: shape ``(n,)``, long, each in ``[0, size)``
         :param values: shape ``(n,)``, non-negative
         """
-        self._run(_set, 1, self.sums, self.maxima, indices, values)
+        self._run(_set, self.sums, self.maxima, indices, values)
 
     def find(self, mass: th.Tensor) -> th.Tensor:
         """For each ``mass`` in ``[0, total)``, the leaf ``i`` with ``c_{i-1} < mass <= c_i``, ``c`` the cumulative sums
@@ -87,15 +87,15 @@ class SumTree:
         :param mass: shape ``(n,)``
         :return: the leaves' indices, shape ``(n,)``, long
         """
-        return self._run(_find, 0, self.sums, mass)
+        return self._run(_find, self.sums, mass)
 
-    def _run(self, fn: Callable[..., th.Tensor | None], which: int, *args: object) -> th.Tensor | None:
+    def _run(self, fn: Callable[..., th.Tensor | None], *args: object) -> th.Tensor | None:
         """``fn(*args)``, through ``torch.compile`` (:attr:`backend`) outside a compiled function; a compilation that
         fails (a missing compiler, say) is said once and the tree goes on eagerly."""
         if self.backend is None or th.compiler.is_compiling():
             return fn(*args)
         try:
-            return _compiled(self.backend)[which](*args)
+            return _compiled(fn, self.backend)(*args)
         except (th._dynamo.exc.TorchDynamoException, th._dynamo.exc.FailOnRecompileLimitHit) as error:  # before it ran
             log.warning("SumTree: torch.compile(backend=%r) failed (%s): eager from now on", self.backend, error)
             self.backend = None
@@ -152,10 +152,10 @@ def _find(sums: list[th.Tensor], mass: th.Tensor) -> th.Tensor:
 
 
 @functools.cache
-def _compiled(backend: str) -> tuple[Callable[..., th.Tensor], Callable[..., None]]:
-    """:func:`_find` and :func:`_set` through ``torch.compile`` with ``backend``: one graph per shape of the tree and
-    of the batch, shared by every tree (their levels are the graphs' inputs)."""
-    return th.compile(_find, fullgraph=True, backend=backend), th.compile(_set, fullgraph=True, backend=backend)
+def _compiled(fn: Callable[..., th.Tensor | None], backend: str) -> Callable[..., th.Tensor | None]:
+    """``fn`` (:func:`_find` or :func:`_set`) through ``torch.compile`` with ``backend``, made once: one graph per shape
+    of the tree and of the batch, shared by every tree (their levels are the graph's inputs)."""
+    return th.compile(fn, fullgraph=True, backend=backend)
 
 
 __all__ = ["FANOUT", "SumTree"]
