@@ -199,10 +199,18 @@ class HeldSignals:
     worker records as an interrupted trial. A signal held while the worker waits for the storage's budget lock acts
     once the lock is free; the lock is held only for the moment another worker creates a trial.
 
-    A signal handler raises where the main thread happens to be, and that can be a finalizer or a weakref callback run
-    by the garbage collector (SQLAlchemy has some), where Python drops the exception with an "Exception ignored"
-    traceback. While the trial runs, such a dropped :class:`SignalInterrupt` is sent again a millisecond later, so
-    that it acts in the trial's own code; it is never lost, and the traceback is not printed.
+    A signal handler raises where the main thread happens to be, and two places must not be interrupted:
+
+    - the study's database code (SQLAlchemy, its drivers, Optuna's storages), which the trial calls to report: an
+      interrupt raised as one of SQLite's statements returns (a SELECT most of all) can leave its connection holding
+      the lock until the garbage collector finds it, and the worker's next write fails ("database is locked", seen in
+      CI after a double Ctrl-C). A signal that lands there is not raised but sent again a millisecond later, until it
+      lands outside;
+    - a finalizer or a weakref callback run by the garbage collector (SQLAlchemy has some), where Python drops the
+      exception with an "Exception ignored" traceback: such a dropped :class:`SignalInterrupt` is sent again too.
+
+    So the interrupt acts in the trial's own code; it is never lost, and no traceback is printed. A signal is sent
+    again only while the trial runs: once it has ended, the one remembered in :attr:`received` is acted on.
     """
 
     def __init__(self) -> None:
@@ -210,6 +218,8 @@ class HeldSignals:
         self._previous: dict[int, Any] = {}
         self._active = _in_main_thread()
         self._signals = stop_signals()
+        self._live = False  # signals act (raise) now; a signal is sent again only while this holds
+        self._live_lock = threading.Lock()  # ... so that none is sent once hold() has begun
 
     def __enter__(self) -> HeldSignals:
         if self._active:
@@ -222,6 +232,8 @@ class HeldSignals:
 
     def hold(self) -> None:
         """Remember signals instead of acting on them (again, after :meth:`live`)."""
+        with self._live_lock:
+            self._live = False
         if self._active:
             _install(self._signals, self._remember)
 
@@ -230,6 +242,7 @@ class HeldSignals:
         """Let signals act while the block runs: each is remembered and raises :class:`SignalInterrupt`."""
         if self._active:
             _install(self._signals, self._interrupt)
+            self._live = True
         previous_hook = sys.unraisablehook
         if self._active:
             sys.unraisablehook = self._deliver_again(previous_hook)
@@ -239,12 +252,22 @@ class HeldSignals:
             sys.unraisablehook = previous_hook
             self.hold()
 
-    @staticmethod
-    def _deliver_again(previous: Any) -> Any:
+    def _send_again(self, signum: int) -> None:
+        """Send ``signum`` to this process again, from another thread a millisecond later, if the trial still runs
+        then: it is handled in the main thread wherever that is by then."""
+
+        def send() -> None:
+            with self._live_lock:
+                if self._live:
+                    os.kill(os.getpid(), signum)
+
+        threading.Timer(0.001, send).start()
+
+    def _deliver_again(self, previous: Any) -> Any:
         """An unraisable hook that sends a signal whose :class:`SignalInterrupt` Python dropped (raised in a finalizer or
-        a weakref callback) again, from another thread a millisecond later: it is then handled in the main thread's
-        own code, once the callback has returned. A signal that lands while the hook starts that thread is sent again
-        too. Anything else goes to ``previous``."""
+        a weakref callback) again (:meth:`_send_again`): it is then handled in the main thread's own code, once the
+        callback has returned. A signal that lands while the hook starts that thread is sent again too. Anything else
+        goes to ``previous``."""
 
         def hook(unraisable: Any) -> None:
             if not isinstance(unraisable.exc_value, SignalInterrupt):
@@ -254,7 +277,7 @@ class HeldSignals:
             while dropped:
                 signum = getattr(signal, dropped.pop().signal_name)
                 try:
-                    threading.Timer(0.001, os.kill, (os.getpid(), signum)).start()
+                    self._send_again(signum)
                 except SignalInterrupt as another:  # a second signal while the timer starts: raised here, in the
                     dropped.append(another)  # hook, where Python drops it (and prints it) too; sent again as well
 
@@ -268,7 +291,23 @@ class HeldSignals:
     @_ours
     def _interrupt(self, signum: int, frame: Any) -> None:
         self._remember(signum, frame)
+        if _in_storage_code(frame):
+            self._send_again(signum)  # raised here, it could leave a database connection holding its lock
+            return
         raise SignalInterrupt(signal.Signals(signum).name)
+
+
+#: Where a signal must not raise: the study's database code, whose connection could keep its lock (see HeldSignals).
+_STORAGE_MODULES = ("sqlalchemy", "optuna.storages", "sqlite3", "psycopg", "pymysql")
+
+
+def _in_storage_code(frame: Any) -> bool:
+    """Whether ``frame``, or a frame that called it, runs in the database code of :data:`_STORAGE_MODULES`."""
+    while frame is not None:
+        if frame.f_globals.get("__name__", "").startswith(_STORAGE_MODULES):
+            return True
+        frame = frame.f_back
+    return False
 
 
 @contextlib.contextmanager
