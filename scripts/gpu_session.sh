@@ -13,6 +13,7 @@
 # tests_cuda: the GPU test layer and the tests that name CUDA, graphs or seed batches (a shorter check).
 # seeds16:    16 Ant seeds every way with SB3's processes too (the measure part leaves them out for time).
 # sb3_seeds:  16 separate SB3 processes on the GPU.
+# seeds16_sbx: the 16-seed table with SBX beside (MPS on and off), one SeedBatch, then tests/gpu (issue 41).
 # Everything goes to $OUT (at most 8 files come back). Each step has its own time limit, so that a slow one does not
 # take the others' results with it. First run: 2026-11-23 (H100); the compiled default not yet run on a GPU (docs/performance.md).
 set -uo pipefail
@@ -98,6 +99,25 @@ elif [ "$part" = seeds16 ]; then
     --modes $modes --mps both --steps 300 --warmup 100 --json "$OUT/seeds16_mps.json" > "$OUT/seeds16_mps.txt" 2>&1
   echo "seeds16 rc=$?" >> "$OUT/seeds16_mps.txt"
   tail -n 14 "$OUT/seeds16_mps.txt"
+elif [ "$part" = seeds16_sbx ]; then
+  # Issue 41's missing 16-seed table: 16 Ant seeds as 16 TD3X and 16 SBX processes, under MPS and without (one
+  # seeds_scaling.py call each, each with its own limit and JSON and its own SB3 process as baseline), then one
+  # SeedBatch of 16 (collecting in turn and in 16 threads), then the GPU test layer.
+  [ -n "$(python3 -c 'import sbx' 2>&1)" ] && echo "sbx does not import" >> "$OUT/seeds16_sbx.txt"
+  for mps in on off; do
+    timeout 170 python3 benchmarks/seeds_scaling.py --env Ant-v5 --batch-size 256 --device cuda --seeds 16 \
+      --modes sbx_procs td3x_procs --mps $mps --steps 200 --warmup 100 --learning-starts 500 \
+      --json "$OUT/seeds16_sbx_mps_$mps.json" >> "$OUT/seeds16_sbx.txt" 2>&1
+    echo "seeds16 sbx mps=$mps rc=$? at ${SECONDS}s" >> "$OUT/seeds16_sbx.txt"
+  done
+  timeout $(( 470 - SECONDS > 40 ? 470 - SECONDS : 40 )) python3 benchmarks/seeds_scaling.py --env Ant-v5 \
+    --batch-size 256 --device cuda --seeds 16 --modes batched batched_threads --steps 200 --warmup 100 \
+    --learning-starts 500 --json "$OUT/seeds16_batched.json" >> "$OUT/seeds16_sbx.txt" 2>&1
+  echo "seeds16 batched rc=$? at ${SECONDS}s" >> "$OUT/seeds16_sbx.txt"
+  timeout $(( 585 - SECONDS > 30 ? 585 - SECONDS : 30 )) python3 -m pytest -q -p no:cacheprovider -n 14 --timeout 100 \
+    -rfEs --durations=8 tests/gpu > "$OUT/tests_gpu.txt" 2>&1
+  echo "tests/gpu rc=$? at ${SECONDS}s" >> "$OUT/tests_gpu.txt"
+  grep -E "N=|rc=|sbx" "$OUT/seeds16_sbx.txt"; tail -n 12 "$OUT/tests_gpu.txt"
 elif [ "$part" = sb3_seeds ]; then
   # The baseline the measure part's time limit cut off: 16 separate SB3 processes (N=1 and 4 are in its table).
   timeout 200 python3 benchmarks/seeds_scaling.py --env Ant-v5 --batch-size 256 --device cuda --seeds 16 \
