@@ -13,7 +13,11 @@
 # tests_cuda: the GPU test layer and the tests that name CUDA, graphs or seed batches (a shorter check).
 # seeds16:    16 Ant seeds every way with SB3's processes too (the measure part leaves them out for time).
 # sb3_seeds:  16 separate SB3 processes on the GPU.
-# seeds16_sbx: the 16-seed table with SBX beside (MPS on and off), one SeedBatch, then tests/gpu (issue 41).
+# seeds16_sbx: the 16-seed table with SBX beside (MPS on and off), then tests/gpu.
+# Durations on an H100 (2026-11-27), for planning a call: 16 SBX processes about 150 s per measurement (16 JAX starts
+# and compilations), 16 TD3X processes about 60 s, one SB3 process about 20 s, a fresh machine's start about 70 s; one
+# SeedBatch of 16 seeds did not finish within 112 s. So one call holds the 16-seed table with SBX (seeds16_sbx) or
+# the one-seed tables, not both.
 # Everything goes to $OUT (at most 8 files come back). Each step has its own time limit, so that a slow one does not
 # take the others' results with it. First run: 2026-11-23 (H100); the compiled default not yet run on a GPU (docs/performance.md).
 set -uo pipefail
@@ -100,20 +104,16 @@ elif [ "$part" = seeds16 ]; then
   echo "seeds16 rc=$?" >> "$OUT/seeds16_mps.txt"
   tail -n 14 "$OUT/seeds16_mps.txt"
 elif [ "$part" = seeds16_sbx ]; then
-  # Issue 41's missing 16-seed table: 16 Ant seeds as 16 TD3X and 16 SBX processes, under MPS and without (one
-  # seeds_scaling.py call each, each with its own limit and JSON and its own SB3 process as baseline), then one
-  # SeedBatch of 16 (collecting in turn and in 16 threads), then the GPU test layer.
+  # The 16-seed table with SBX beside: 16 Ant seeds as 16 TD3X and 16 SBX processes, under MPS and without (one
+  # seeds_scaling.py call each, each with its own limit and JSON and its own SB3 process as baseline; 2026-11-27's
+  # limits of 170 s cut the TD3X processes after SBX's, so TD3X now goes first), then the GPU test layer.
   [ -n "$(python3 -c 'import sbx' 2>&1)" ] && echo "sbx does not import" >> "$OUT/seeds16_sbx.txt"
   for mps in on off; do
-    timeout 170 python3 benchmarks/seeds_scaling.py --env Ant-v5 --batch-size 256 --device cuda --seeds 16 \
-      --modes sbx_procs td3x_procs --mps $mps --steps 200 --warmup 100 --learning-starts 500 \
+    timeout 250 python3 benchmarks/seeds_scaling.py --env Ant-v5 --batch-size 256 --device cuda --seeds 16 \
+      --modes td3x_procs sbx_procs --mps $mps --steps 200 --warmup 100 --learning-starts 500 \
       --json "$OUT/seeds16_sbx_mps_$mps.json" >> "$OUT/seeds16_sbx.txt" 2>&1
     echo "seeds16 sbx mps=$mps rc=$? at ${SECONDS}s" >> "$OUT/seeds16_sbx.txt"
   done
-  timeout $(( 470 - SECONDS > 40 ? 470 - SECONDS : 40 )) python3 benchmarks/seeds_scaling.py --env Ant-v5 \
-    --batch-size 256 --device cuda --seeds 16 --modes batched batched_threads --steps 200 --warmup 100 \
-    --learning-starts 500 --json "$OUT/seeds16_batched.json" >> "$OUT/seeds16_sbx.txt" 2>&1
-  echo "seeds16 batched rc=$? at ${SECONDS}s" >> "$OUT/seeds16_sbx.txt"
   timeout $(( 585 - SECONDS > 30 ? 585 - SECONDS : 30 )) python3 -m pytest -q -p no:cacheprovider -n 14 --timeout 100 \
     -rfEs --durations=8 tests/gpu > "$OUT/tests_gpu.txt" 2>&1
   echo "tests/gpu rc=$? at ${SECONDS}s" >> "$OUT/tests_gpu.txt"
