@@ -4,6 +4,8 @@ separate processes of TD3X and of SB3's TD3, for N = 1, 2, 4, 8 (16 on a GPU).
     python benchmarks/seeds_scaling.py --env Hopper-v5 --batch-size 100 --json hopper_seeds.json
     python benchmarks/seeds_scaling.py --env Ant-v5 --batch-size 256 --json ant_seeds.json
     python benchmarks/seeds_scaling.py --env Ant-v5 --batch-size 256 --device cuda --seeds 1 2 4 8 16
+    python benchmarks/seeds_scaling.py --env Ant-v5 --batch-size 256 --device cuda --seeds 16 --modes td3x_procs \
+        --td3x cuda_graph=true                                      # TD3X's models with one of its own options
     python benchmarks/seeds_scaling.py --env Pendulum-v1 --seeds 1 2 --steps 200 --warmup 150 --learning-starts 100 \
         --net 64 64 --threads 1                                                       # smoke run, half a minute
 
@@ -77,6 +79,7 @@ import time
 import traceback
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
@@ -86,7 +89,7 @@ from stable_baselines3 import TD3
 from stable_baselines3.common.logger import configure
 from stable_baselines3.common.noise import NormalActionNoise
 from stable_baselines3.common.utils import get_device
-from throughput import as_part_of_a_run
+from throughput import as_part_of_a_run, td3x_arguments
 
 from sb3_td3x import TD3X, SeedBatch
 
@@ -141,6 +144,7 @@ class Config:
     steps: int
     device: str
     run_length: int = 1_000_000  # a TD3X has the defaults of a run this long (compile_update=None decides from it)
+    td3x_kwargs: tuple[tuple[str, Any], ...] = ()  # --td3x: TD3X's own arguments (its models only, batches included)
 
 
 def make_model(algo: type, config: Config, seed: int) -> TD3:
@@ -158,6 +162,7 @@ def make_model(algo: type, config: Config, seed: int) -> TD3:
         seed=seed,
         device=config.device,
         **PAPER,
+        **(dict(config.td3x_kwargs) if issubclass(algo, TD3X) else {}),
     )
     model.set_logger(configure(None, []))
     return as_part_of_a_run(model, config.run_length)
@@ -441,7 +446,15 @@ def parse_arguments(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument(
         "--mps", choices=("off", "on", "both"), default="off", help="the separate-process modes under CUDA MPS (GPU)"
     )
+    parser.add_argument(
+        "--td3x", nargs="*", default=[], metavar="KEY=VALUE",
+        help="TD3X's own arguments for its models (td3x_procs and the batches), such as cuda_graph=true",
+    )
     args = parser.parse_args(argv)
+    fixed = {name: "TD3's, the same for every mode" for name in PAPER} | {
+        name: f"--{name.replace('_', '-')}" for name in ("buffer_size", "learning_starts", "batch_size", "device")
+    } | {"seed": "seed i in every mode", "action_noise": "N(0, 0.1) in every mode", "policy_kwargs": "--net"}
+    args.td3x_kwargs = td3x_arguments(parser, args.td3x, fixed)
     if args.env not in gym.registry:
         parser.error(f"--env: no gymnasium environment {args.env!r} (for example Hopper-v5, Ant-v5, Pendulum-v1)")
     env = gym.make(args.env)
@@ -511,12 +524,14 @@ def main(argv: list[str] | None = None) -> None:
         args.steps,
         args.device,
         args.run_length,
+        tuple(args.td3x_kwargs.items()),
     )
     machine = machine_info(args.device)
     print(f"machine: {machine}")
     print(
         f"{config.env}, batch {config.batch_size}, net {list(config.net)}, {config.device}; {config.steps} timed steps "
         f"per seed after {config.learning_starts} random + {config.warmup} training steps; {args.threads} threads"
+        + (f"; TD3X with {' '.join(args.td3x)}" if args.td3x else "")
     )
     measurements = []
     for repeat in range(args.repeats):

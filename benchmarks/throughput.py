@@ -486,20 +486,28 @@ def bench_env(env_id: str, args: argparse.Namespace, td3x_kwargs: dict, peer: ty
     return result
 
 
-def check_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -> dict:
-    """The TD3X keyword arguments of ``--td3x``; a clear ``parser.error`` (exit 2) for what would fail later."""
-    malformed = [item for item in args.td3x if "=" not in item or not item.split("=", 1)[0]]
+def td3x_arguments(parser: argparse.ArgumentParser, items: list[str], fixed: dict[str, str]) -> dict:
+    """The TD3X keyword arguments of ``--td3x KEY=VALUE ...``, values parsed (:func:`parse_value`); a clear
+    ``parser.error`` (exit 2) for a malformed item, an argument TD3X does not take, or one of ``fixed`` (the
+    benchmark's own, the same for every model: name -> where it is set)."""
+    malformed = [item for item in items if "=" not in item or not item.split("=", 1)[0]]
     if malformed:
         parser.error(f"--td3x takes KEY=VALUE pairs, such as bf16=true; got {' '.join(malformed)}")
-    td3x_kwargs = {k: parse_value(v) for k, v in (item.split("=", 1) for item in args.td3x)}
-    fixed = {"buffer_size": "--buffer-size", "batch_size": "--batch-size", "seed": "--seed",
-             "learning_starts": "1000 for both models", "action_noise": "N(0, 0.1) for both models"}
+    td3x_kwargs = {k: parse_value(v) for k, v in (item.split("=", 1) for item in items)}
     known = set(inspect.signature(TD3X.__init__).parameters) - {"self", "policy", "env", "_init_setup_model"}
     unknown = sorted(set(td3x_kwargs) - known)
     if unknown:
         parser.error(f"--td3x: TD3X has no argument {', '.join(unknown)}; it takes {', '.join(sorted(known - set(fixed)))}")
     for name in sorted(set(td3x_kwargs) & set(fixed)):
-        parser.error(f"--td3x: {name} is the benchmark's, the same for both models ({fixed[name]})")
+        parser.error(f"--td3x: {name} is the benchmark's, the same for every model ({fixed[name]})")
+    return td3x_kwargs
+
+
+def check_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -> dict:
+    """The TD3X keyword arguments of ``--td3x``; a clear ``parser.error`` (exit 2) for what would fail later."""
+    fixed = {"buffer_size": "--buffer-size", "batch_size": "--batch-size", "seed": "--seed",
+             "learning_starts": "1000 for both models", "action_noise": "N(0, 0.1) for both models"}
+    td3x_kwargs = td3x_arguments(parser, args.td3x, fixed)
     for env_id in args.env:
         if env_id not in gym.registry:
             parser.error(f"--env: no gymnasium environment {env_id!r} (for example Ant-v5, HalfCheetah-v5, Hopper-v5)")

@@ -1,6 +1,7 @@
 """benchmarks/seeds_scaling.py without training: bad arguments get a message, the plan always holds one SB3
 process, the processes share the cores, and a measurement combines its processes' windows as its docstring says."""
 
+import dataclasses
 import importlib.util
 import sys
 from pathlib import Path
@@ -34,6 +35,10 @@ _BAD = [
     (["--warmup", "0"], "--warmup must be at least 1"),
     (["--modes", "lone"], "invalid choice: 'lone'"),
     (["--learning-starts", "-1"], "--learning-starts must be at least 0"),
+    (["--td3x", "cuda_graph"], "KEY=VALUE pairs"),
+    (["--td3x", "cuda_graf=true"], "TD3X has no argument cuda_graf"),
+    (["--td3x", "tau=0.01"], "tau is the benchmark's"),
+    (["--td3x", "batch_size=64"], "batch_size is the benchmark's, the same for every model (--batch-size)"),
 ]
 if not th.cuda.is_available():
     _BAD.append((["--device", "cuda"], "torch sees no CUDA device here"))  # SB3's get_device would fall back to CPU
@@ -113,3 +118,19 @@ def test_a_measurement_under_mps_is_the_same_way_of_training_labelled(scaling):
     assert scaling.seed_groups("td3x_procs+mps", 4, 2) == scaling.seed_groups("td3x_procs", 4, 2) == [[0], [1], [2], [3]]
     assert scaling.threads_for("sbx_procs+mps", 2, 2) == scaling.threads_for("sbx_procs", 2, 2) == 1
     assert "sbx_procs" not in scaling.parse_arguments([]).modes  # SBX only when asked (an optional dependency)
+
+
+def test_td3x_arguments_reach_td3x_models_only(scaling):
+    """``--td3x KEY=VALUE``: parsed into TD3X's keyword arguments, given to its models (lone and batched), never to
+    SB3's ``TD3``, which would refuse them or train something else under the same label."""
+    from stable_baselines3 import TD3
+
+    from sb3_td3x import TD3X
+
+    args = scaling.parse_arguments(["--env", "Pendulum-v1", "--td3x", "compile_update=false", "cuda_graph=false"])
+    assert args.td3x_kwargs == {"compile_update": False, "cuda_graph": False}
+    config = scaling.Config("Pendulum-v1", 32, (16,), 1_000, 100, 10, 10, "cpu", td3x_kwargs=tuple(args.td3x_kwargs.items()))
+    td3x = scaling.make_model(TD3X, config, 0)
+    assert td3x.compile_update is False and td3x.cuda_graph_request is False
+    assert isinstance(scaling.make_model(TD3, config, 0), TD3)  # SB3's TD3 takes no compile_update: not given it
+    assert scaling.make_model(TD3X, dataclasses.replace(config, td3x_kwargs=()), 0).compile_update is None
