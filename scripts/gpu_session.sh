@@ -14,6 +14,7 @@
 # seeds16:    16 Ant seeds every way with SB3's processes too (the measure part leaves them out for time).
 # sb3_seeds:  16 separate SB3 processes on the GPU.
 # seeds16_sbx: the 16-seed table with SBX beside (MPS on and off), then tests/gpu.
+# nomps_probe: 16 TD3X processes without MPS, three updates (why SBX's led there), and SBX's beside.
 # Durations on an H100 (2026-11-27), for planning a call: 16 SBX processes about 150 s per measurement (16 JAX starts
 # and compilations), 16 TD3X processes about 60 s, one SB3 process about 20 s, a fresh machine's start about 70 s; one
 # SeedBatch of 16 seeds did not finish within 112 s. So one call holds the 16-seed table with SBX (seeds16_sbx) or
@@ -118,6 +119,26 @@ elif [ "$part" = seeds16_sbx ]; then
     -rfEs --durations=8 tests/gpu > "$OUT/tests_gpu.txt" 2>&1
   echo "tests/gpu rc=$? at ${SECONDS}s" >> "$OUT/tests_gpu.txt"
   grep -E "N=|rc=|sbx" "$OUT/seeds16_sbx.txt"; tail -n 12 "$OUT/tests_gpu.txt"
+elif [ "$part" = nomps_probe ]; then
+  # Why SBX's 16 processes led TD3X's without MPS on 2026-11-27 (0.79x; 1.82x under MPS). The guess to test (log,
+  # "16 seeds against SBX's processes"): a TD3X step submits more separate pieces of GPU work, each waiting for its
+  # time slice. 16 TD3X processes without MPS: the default (compiled in CUDA graphs), the whole gradient step captured
+  # (cuda_graph=true: sampling too, one replay) and the eager hooks (the most submissions); then SBX's, on the same
+  # machine. Each call has its own SB3 process; the last line of each is its rate.
+  n=0
+  for td3x in "" "cuda_graph=true" "compile_update=false cuda_graph=false"; do
+    n=$((n + 1))
+    # shellcheck disable=SC2086  # the options are words
+    timeout $(( 100 * n + 30 - SECONDS > 40 ? 100 * n + 30 - SECONDS : 40 )) python3 benchmarks/seeds_scaling.py \
+      --env Ant-v5 --batch-size 256 --device cuda --seeds 16 --modes td3x_procs --mps off --steps 200 --warmup 100 \
+      --learning-starts 500 ${td3x:+--td3x $td3x} --json "$OUT/nomps_td3x_$n.json" >> "$OUT/nomps_probe.txt" 2>&1
+    echo "td3x_procs no MPS ${td3x:-default} rc=$? at ${SECONDS}s" >> "$OUT/nomps_probe.txt"
+  done
+  timeout $(( 585 - SECONDS > 40 ? 585 - SECONDS : 40 )) python3 benchmarks/seeds_scaling.py --env Ant-v5 \
+    --batch-size 256 --device cuda --seeds 16 --modes sbx_procs --mps off --steps 200 --warmup 100 \
+    --learning-starts 500 --json "$OUT/nomps_sbx.json" >> "$OUT/nomps_probe.txt" 2>&1
+  echo "sbx_procs no MPS rc=$? at ${SECONDS}s" >> "$OUT/nomps_probe.txt"
+  grep -E "N=|rc=|TD3X with" "$OUT/nomps_probe.txt"
 elif [ "$part" = sb3_seeds ]; then
   # The baseline the measure part's time limit cut off: 16 separate SB3 processes (N=1 and 4 are in its table).
   timeout 200 python3 benchmarks/seeds_scaling.py --env Ant-v5 --batch-size 256 --device cuda --seeds 16 \
