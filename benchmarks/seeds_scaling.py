@@ -442,7 +442,9 @@ def parse_arguments(argv: list[str] | None = None) -> argparse.Namespace:
     )
     parser.add_argument("--device", default="auto", help="cpu, cuda, cuda:1, auto (SB3's: cuda when there is one)")
     parser.add_argument("--repeats", type=int, default=1, help="runs of the whole plan; the table shows medians")
-    parser.add_argument("--json", help="write every measurement, the machine, the commit and the command here")
+    parser.add_argument(
+        "--json", help="write every measurement, the machine, the commit and the command here (after each measurement)"
+    )
     parser.add_argument(
         "--mps", choices=("off", "on", "both"), default="off", help="the separate-process modes under CUDA MPS (GPU)"
     )
@@ -533,7 +535,8 @@ def main(argv: list[str] | None = None) -> None:
         f"per seed after {config.learning_starts} random + {config.warmup} training steps; {args.threads} threads"
         + (f"; TD3X with {' '.join(args.td3x)}" if args.td3x else "")
     )
-    measurements = []
+    measurements: list[dict] = []
+    command = shlex.join([sys.executable, *sys.argv]) if argv is None else shlex.join(argv)
     for repeat in range(args.repeats):
         for mode, n in plan(args.modes, args.seeds):
             with shared_gpu(mode, n):
@@ -546,29 +549,35 @@ def main(argv: list[str] | None = None) -> None:
                 f"threads; per process {rates}; windows overlap {100 * m['overlap']:.0f}%; update {m['update_path'] or '-'})",
                 flush=True,
             )
-    rows = summarize(measurements)
-    print_table(rows, args.seeds)
+            if args.json:  # after each measurement: a run cut by a time limit keeps what it measured
+                write_json(args, command, machine, config, measurements, complete=False)
+    print_table(summarize(measurements), args.seeds)
     if args.json:
-        summary = [
-            {**row, "ratio_to_one_sb3_process": row["seed_steps_per_s"] / rows[("sb3_procs", 1)]["seed_steps_per_s"]}
-            for row in rows.values()
-        ]
-        with open(args.json, "w") as f:
-            json.dump(
-                {
-                    "machine": machine,
-                    **git_commit(),
-                    "command": shlex.join([sys.executable, *sys.argv]) if argv is None else shlex.join(argv),
-                    "config": {**asdict(config), "paper_hyperparameters": PAPER, "exploration_noise": EXPLORATION_NOISE},
-                    "args": vars(args),
-                    "summary": summary,
-                    "ratios": ratios(rows, args.seeds),
-                    "measurements": measurements,
-                },
-                f,
-                indent=2,
-            )
+        write_json(args, command, machine, config, measurements, complete=True)
 
+
+def write_json(
+    args: argparse.Namespace, command: str, machine: dict, config: Config, measurements: list[dict], complete: bool
+) -> None:
+    """The measurements so far, their summary and ratios, the machine, the commit and the command, into ``args.json``
+    (replaced whole, so a kill leaves the last complete file); ``complete``: whether the whole plan was measured."""
+    rows = summarize(measurements)
+    baseline = rows[("sb3_procs", 1)]["seed_steps_per_s"]
+    summary = [{**row, "ratio_to_one_sb3_process": row["seed_steps_per_s"] / baseline} for row in rows.values()]
+    record = {
+        "machine": machine,
+        **git_commit(),
+        "command": command,
+        "complete": complete,
+        "config": {**asdict(config), "paper_hyperparameters": PAPER, "exploration_noise": EXPLORATION_NOISE},
+        "args": vars(args),
+        "summary": summary,
+        "ratios": ratios(rows, args.seeds),
+        "measurements": measurements,
+    }
+    partial = Path(f"{args.json}.partial")
+    partial.write_text(json.dumps(record, indent=2))
+    os.replace(partial, args.json)
 
 if __name__ == "__main__":
     main()

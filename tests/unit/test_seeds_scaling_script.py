@@ -3,6 +3,7 @@ process, the processes share the cores, and a measurement combines its processes
 
 import dataclasses
 import importlib.util
+import json
 import sys
 from pathlib import Path
 
@@ -134,3 +135,34 @@ def test_td3x_arguments_reach_td3x_models_only(scaling):
     assert td3x.compile_update is False and td3x.cuda_graph_request is False
     assert isinstance(scaling.make_model(TD3, config, 0), TD3)  # SB3's TD3 takes no compile_update: not given it
     assert scaling.make_model(TD3X, dataclasses.replace(config, td3x_kwargs=()), 0).compile_update is None
+
+
+def test_the_json_holds_each_measurement_as_it_ends(scaling, tmp_path, monkeypatch):
+    """A run cut by a time limit (the GPU sessions' calls) keeps what it measured: ``--json`` is written after each
+    measurement, marked incomplete until the plan ends, and replaced whole (no half-written file)."""
+    out = tmp_path / "seeds.json"
+    seen = []
+
+    def fake_measure(config, mode, n_seeds, threads, total_threads):  # the bookkeeping only: no training here
+        if len(seen) == 2:
+            raise KeyboardInterrupt  # the time limit's signal, during the third measurement
+        seen.append(mode)
+        record = {"seeds": [0], "steps": 10, "seconds": 1.0, "steps_per_s": 10.0 * len(seen), "start": 0.0, "end": 1.0,
+                  "update_path": None}
+        return scaling.combine(mode, n_seeds, threads, [record])
+
+    monkeypatch.setattr(scaling, "measure", fake_measure)
+    argv = ["--env", "Pendulum-v1", "--seeds", "1", "--modes", "td3x_procs", "batched", "--json", str(out)]
+    with pytest.raises(KeyboardInterrupt):
+        scaling.main(argv)
+    record = json.loads(out.read_text())
+    assert record["complete"] is False and [m["mode"] for m in record["measurements"]] == ["sb3_procs", "td3x_procs"]
+    assert {row["mode"]: row["ratio_to_one_sb3_process"] for row in record["summary"]} == {"sb3_procs": 1.0, "td3x_procs": 2.0}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["seeds.json"]
+
+    seen.clear()
+    monkeypatch.setattr(scaling, "measure", lambda config, mode, n, *rest: scaling.combine(mode, n, 1, [
+        {"seeds": [0], "steps": 10, "seconds": 1.0, "steps_per_s": 5.0, "start": 0.0, "end": 1.0, "update_path": None}]))
+    scaling.main(argv)  # the whole plan
+    record = json.loads(out.read_text())
+    assert record["complete"] is True and [m["mode"] for m in record["measurements"]] == ["sb3_procs", "td3x_procs", "batched"]
