@@ -65,7 +65,6 @@ Not part of the test suite (``tests/unit/test_seeds_scaling_script.py`` checks i
 from __future__ import annotations
 
 import argparse
-import json
 import multiprocessing as mp
 import os
 import platform
@@ -89,7 +88,7 @@ from stable_baselines3 import TD3
 from stable_baselines3.common.logger import configure
 from stable_baselines3.common.noise import NormalActionNoise
 from stable_baselines3.common.utils import get_device
-from throughput import as_part_of_a_run, td3x_arguments
+from throughput import as_part_of_a_run, td3x_arguments, write_record
 
 from sb3_td3x import TD3X, SeedBatch
 
@@ -575,9 +574,7 @@ def write_json(
         "ratios": ratios(rows, args.seeds),
         "measurements": measurements,
     }
-    partial = Path(f"{args.json}.partial")
-    partial.write_text(json.dumps(record, indent=2))
-    os.replace(partial, args.json)
+    write_record(args.json, record)
 
 if __name__ == "__main__":
     main()

@@ -567,6 +567,9 @@ def main() -> None:
     for env_id in args.env:
         r = bench_env(env_id, args, td3x_kwargs, peer)
         results.append(r)
+        if args.json:  # after each environment: a run cut by a time limit keeps what it measured
+            write_record(args.json, {"machine": machine, "td3x_kwargs": td3x_kwargs, "args": vars(args), "results": results,
+                                     "complete": False})
         print(f"\n{env_id}, batch {args.batch_size}; TD3X's update: {r['td3x_update_path']}")
         names = {"sb3": "SB3 TD3", "td3x": "TD3X", "sbx": "SBX TD3"}
         print("  end-to-end steps/s  " + "   ".join(f"{names[k]} {v:8.1f}" for k, v in r["steps_per_s"].items()))
@@ -610,8 +613,17 @@ def main() -> None:
                 tag = " (product)" if row["product"] else ""
                 print(f"    {row['ms_per_step']:6.3f} {row['calls_per_step']:5.1f}  {name}{tag}")
     if args.json:
-        with open(args.json, "w") as f:
-            json.dump({"machine": machine, "td3x_kwargs": td3x_kwargs, "args": vars(args), "results": results}, f, indent=2)
+        write_record(args.json, {"machine": machine, "td3x_kwargs": td3x_kwargs, "args": vars(args), "results": results,
+                                 "complete": True})
+
+
+def write_record(path: str, record: dict) -> None:
+    """``record`` as JSON at ``path``, replaced whole (a kill while writing leaves the previous complete file): the
+    benchmarks write after each measurement, so that a run cut by a time limit keeps what it measured."""
+    partial = f"{path}.partial"
+    with open(partial, "w") as f:
+        json.dump(record, f, indent=2)
+    os.replace(partial, path)
 
 
 if __name__ == "__main__":
