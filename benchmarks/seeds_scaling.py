@@ -576,5 +576,6 @@ def write_json(
     }
     write_record(args.json, record)
 
+
 if __name__ == "__main__":
     main()

@@ -20,7 +20,7 @@
 # SeedBatch of 16 seeds did not finish within 112 s. So one call holds the 16-seed table with SBX (seeds16_sbx) or
 # the one-seed tables, not both.
 # Everything goes to $OUT (at most 8 files come back). Each step has its own time limit, so that a slow one does not
-# take the others' results with it. First run: 2026-11-23 (H100); the compiled default not yet run on a GPU (docs/performance.md).
+# take the others' results with it. Runs: 2026-11-23 (H100), 2026-11-25/26 (H200), 2026-11-27 (H100, twice; docs/performance.md).
 set -uo pipefail
 cd "$(dirname "$0")/.."
 part=${1:-measure}
