@@ -129,7 +129,7 @@ elif [ "$part" = nomps_probe ]; then
   for td3x in "" "cuda_graph=true" "compile_update=false cuda_graph=false"; do
     n=$((n + 1))
     # shellcheck disable=SC2086  # the options are words
-    timeout $(( 100 * n + 30 - SECONDS > 40 ? 100 * n + 30 - SECONDS : 40 )) python3 benchmarks/seeds_scaling.py \
+    timeout $(( 110 * n + 40 - SECONDS > 40 ? 110 * n + 40 - SECONDS : 40 )) python3 benchmarks/seeds_scaling.py \
       --env Ant-v5 --batch-size 256 --device cuda --seeds 16 --modes td3x_procs --mps off --steps 200 --warmup 100 \
       --learning-starts 500 ${td3x:+--td3x $td3x} --json "$OUT/nomps_td3x_$n.json" >> "$OUT/nomps_probe.txt" 2>&1
     echo "td3x_procs no MPS ${td3x:-default} rc=$? at ${SECONDS}s" >> "$OUT/nomps_probe.txt"
