@@ -536,8 +536,9 @@ def main(argv: list[str] | None = None) -> None:
     )
     measurements: list[dict] = []
     command = shlex.join([sys.executable, *sys.argv]) if argv is None else shlex.join(argv)
+    planned = plan(args.modes, args.seeds)
     for repeat in range(args.repeats):
-        for mode, n in plan(args.modes, args.seeds):
+        for mode, n in planned:
             with shared_gpu(mode, n):
                 m = measure(config, mode, n, threads_for(mode, n, args.threads), args.threads)
             m["repeat"] = repeat
@@ -549,10 +550,9 @@ def main(argv: list[str] | None = None) -> None:
                 flush=True,
             )
             if args.json:  # after each measurement: a run cut by a time limit keeps what it measured
-                write_json(args, command, machine, config, measurements, complete=False)
+                complete = len(measurements) == args.repeats * len(planned)
+                write_json(args, command, machine, config, measurements, complete)
     print_table(summarize(measurements), args.seeds)
-    if args.json:
-        write_json(args, command, machine, config, measurements, complete=True)
 
 
 def write_json(

@@ -569,7 +569,7 @@ def main() -> None:
         results.append(r)
         if args.json:  # after each environment: a run cut by a time limit keeps what it measured
             write_record(args.json, {"machine": machine, "td3x_kwargs": td3x_kwargs, "args": vars(args), "results": results,
-                                     "complete": False})
+                                     "complete": len(results) == len(args.env)})
         print(f"\n{env_id}, batch {args.batch_size}; TD3X's update: {r['td3x_update_path']}")
         names = {"sb3": "SB3 TD3", "td3x": "TD3X", "sbx": "SBX TD3"}
         print("  end-to-end steps/s  " + "   ".join(f"{names[k]} {v:8.1f}" for k, v in r["steps_per_s"].items()))
@@ -612,9 +612,6 @@ def main() -> None:
             for name, row in list(rows.items())[:20]:
                 tag = " (product)" if row["product"] else ""
                 print(f"    {row['ms_per_step']:6.3f} {row['calls_per_step']:5.1f}  {name}{tag}")
-    if args.json:
-        write_record(args.json, {"machine": machine, "td3x_kwargs": td3x_kwargs, "args": vars(args), "results": results,
-                                 "complete": True})
 
 
 def write_record(path: str, record: dict) -> None:

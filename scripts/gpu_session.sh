@@ -108,7 +108,7 @@ elif [ "$part" = seeds16_sbx ]; then
   # The 16-seed table with SBX beside: 16 Ant seeds as 16 TD3X and 16 SBX processes, under MPS and without (one
   # seeds_scaling.py call each, each with its own limit and JSON and its own SB3 process as baseline; 2026-11-27's
   # limits of 170 s cut the TD3X processes after SBX's, so TD3X now goes first), then the GPU test layer.
-  [ -n "$(python3 -c 'import sbx' 2>&1)" ] && echo "sbx does not import" >> "$OUT/seeds16_sbx.txt"
+  python3 -c "import sbx" 2>/dev/null || echo "sbx does not import" >> "$OUT/seeds16_sbx.txt"
   for mps in on off; do
     timeout 250 python3 benchmarks/seeds_scaling.py --env Ant-v5 --batch-size 256 --device cuda --seeds 16 \
       --modes td3x_procs sbx_procs --mps $mps --steps 200 --warmup 100 --learning-starts 500 \
