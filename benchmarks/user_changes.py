@@ -1,14 +1,17 @@
 """What a user's change, and each variant of ``sb3_td3x.variants``, costs against the stock TD3X: one process, chunks
-alternated A B C ... A B C, every model the default of a long run (``compile_update=None`` compiles the hooks as
-written on a CPU, whatever they are).
+alternated A B C ... C B A (the order reversed every other round), every model the default of a long run
+(``compile_update=None`` compiles the hooks as written on a CPU, whatever they are).
 
     python benchmarks/user_changes.py                                   # Hopper-v5, batch 100, 2 threads
     python benchmarks/user_changes.py --cases stock huber td3_lap td3_c51 --chunks 8
     python benchmarks/user_changes.py --json docs/assets/user_changes.json
+    python benchmarks/user_changes.py --cases stock stock_again huber noise layernorm_policy --chunks 30 --chunk-steps 150
 
 The cases:
 
 - ``stock``: ``TD3X`` as it is;
+- ``stock_again``: a second stock ``TD3X`` (opt-in, ``--cases stock_again ...``): the A/A control, whose ratio to
+  ``stock`` is what the host's noise alone gives;
 - ``huber``: the README's Huber ``critic_loss``;
 - ``noise``: ``target_policy_smoothing_noise`` overridden (a uniform noise in place of the Gaussian one);
 - ``layernorm_policy``: LayerNorm critics through a policy subclass (``make_critic``), as before the network hooks;
@@ -73,6 +76,7 @@ class LayerNormPolicy(TD3XPolicy):
 
 CASES = {
     "stock": (TD3X, {}),
+    "stock_again": (TD3X, {}),  # a second stock TD3X: the A/A control, what the host's noise and the order alone give
     "huber": (HuberTD3, {}),
     "noise": (UniformNoiseTD3, {}),
     "layernorm_policy": (TD3X, {"policy": LayerNormPolicy}),
@@ -96,7 +100,7 @@ def main() -> None:
     parser.add_argument("--env", default="Hopper-v5")
     parser.add_argument("--batch-size", type=int, default=100)
     parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--cases", nargs="+", default=list(CASES), choices=list(CASES))
+    parser.add_argument("--cases", nargs="+", default=[c for c in CASES if c != "stock_again"], choices=list(CASES))
     parser.add_argument("--chunks", type=int, default=6)
     parser.add_argument("--chunk-steps", type=int, default=400)
     parser.add_argument("--warmup", type=int, default=1_500, help="steps before timing (1000 random, then compilation)")
@@ -109,8 +113,9 @@ def main() -> None:
         model.learn(args.warmup)
     rates: dict[str, list[float]] = {name: [] for name in cases}
     cores: dict[str, list[float]] = {name: [] for name in cases}
-    for _ in range(args.chunks):
-        for name, model in models.items():
+    for round_ in range(args.chunks):
+        # The order reversed every other round, so that no case always runs right after the same one, or first.
+        for name, model in (list(models.items()) if round_ % 2 == 0 else reversed(list(models.items()))):
             start, cpu = time.perf_counter(), time.process_time()
             model.learn(args.chunk_steps, reset_num_timesteps=False)
             wall = time.perf_counter() - start
