@@ -62,7 +62,8 @@ def main() -> None:
         return (time.perf_counter() - start) / args.steps * 1e3
 
     compiled = th.compile(one_after_the_other), th.compile(together)
-    print(f"two critics {args.inputs}-{'-'.join(map(str, widths))}-1, batch {args.batch_size}, {args.threads} threads: ms per forward and backward")
+    shape = f"{args.inputs}-{'-'.join(map(str, widths))}-1"
+    print(f"two critics {shape}, batch {args.batch_size}, {args.threads} threads: ms per forward and backward")
     for _ in range(args.repeats):
         eager = ms(one_after_the_other), ms(together)
         comp = ms(compiled[0]), ms(compiled[1])
