@@ -16,15 +16,8 @@ import argparse
 import time
 
 import torch as th
+from stable_baselines3.common.torch_layers import create_mlp
 from torch import nn
-
-
-def critic(inputs: int, widths: list[int]) -> nn.Sequential:
-    layers: list[nn.Module] = []
-    for width in widths:
-        layers += [nn.Linear(inputs, width), nn.ReLU()]
-        inputs = width
-    return nn.Sequential(*layers, nn.Linear(inputs, 1))
 
 
 def main() -> None:
@@ -37,7 +30,7 @@ def main() -> None:
     args = parser.parse_args()
     th.set_num_threads(args.threads)
     widths = [400, 300]
-    q1, q2 = critic(args.inputs, widths), critic(args.inputs, widths)
+    q1, q2 = (nn.Sequential(*create_mlp(args.inputs, 1, widths)) for _ in range(2))  # as SB3 builds each critic
     x, y = th.randn(args.batch_size, args.inputs), th.randn(args.batch_size, 1)
     stacked = [th.stack([a, b]).detach().requires_grad_() for a, b in zip(q1.parameters(), q2.parameters())]
 

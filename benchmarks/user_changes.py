@@ -113,9 +113,10 @@ def main() -> None:
         model.learn(args.warmup)
     rates: dict[str, list[float]] = {name: [] for name in cases}
     cores: dict[str, list[float]] = {name: [] for name in cases}
+    order = list(models.items())
     for round_ in range(args.chunks):
         # The order reversed every other round, so that no case always runs right after the same one, or first.
-        for name, model in (list(models.items()) if round_ % 2 == 0 else reversed(list(models.items()))):
+        for name, model in order if round_ % 2 == 0 else order[::-1]:
             start, cpu = time.perf_counter(), time.process_time()
             model.learn(args.chunk_steps, reset_num_timesteps=False)
             wall = time.perf_counter() - start
