@@ -4,12 +4,14 @@
         old=/tmp/old514:td3x new=.:td3x                       # two checkouts of this repository (git worktree add)
     python benchmarks/alternated.py --env Ant-v5 --batch-size 256 new=.:td3x compiled=.:td3x:compile_update=true sbx=.:sbx
     python benchmarks/alternated.py --mode train old=/tmp/old:td3x new=.:td3x   # gradient steps only, no collection
+    python benchmarks/alternated.py t2=.:td3x t1=.:td3x:threads=1 sbx=.:sbx      # one side on one torch thread
 
 Each ``NAME=TREE:ALGO[:KEY=VALUE,...]`` is a process that imports this package from ``TREE`` (a checkout; ``.``
 is this one) and trains ``ALGO`` (``td3x``, ``sb3`` or ``sbx``) with ``benchmarks/throughput.py``'s settings of that
 tree (400-300, lr 1e-3, 1000 random steps, N(0, 0.1) exploration). After a warm-up, one at a time, the driver asks each
 process in turn for a chunk of ``--chunk-steps`` steps (``learn``, or ``train`` with ``--mode train``): only one
-process runs at a time, and a slow phase of the machine hits the chunks around it alike. It prints each one's
+process runs at a time, and a slow phase of the machine hits the chunks around it alike. ``threads=N`` among a side's
+``KEY=VALUE`` sets that side's torch (or XLA) threads in place of ``--threads``. It prints each one's
 median steps/s, its cores used (process CPU seconds per second) and the median of its per-chunk ratios to the first.
 
 Use it where one process cannot hold both sides (two commits of this package), or to compare across processes: on
@@ -36,8 +38,9 @@ def worker(tree: str, algo: str, env: str, batch_size: int, threads: int, extra:
     import torch as th
     from throughput import make_model, parse_value  # the tree's own: its settings
 
-    th.set_num_threads(threads)
     kwargs = {k: parse_value(v) for k, v in (item.split("=", 1) for item in extra)}
+    threads = int(kwargs.pop("threads", threads))  # this side's own thread count, not a model argument
+    th.set_num_threads(threads)
     if algo == "sbx":
         from throughput import sbx_td3
 
