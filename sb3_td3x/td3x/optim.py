@@ -122,7 +122,7 @@ def why_not_traceable(optimizer: th.optim.Optimizer) -> str | None:
     ``step()``, and no gradient hook on its parameters (``register_hook``, ``register_post_accumulate_grad_hook``:
     a graph differentiating with ``torch.autograd.grad`` would not run them)."""
     if type(optimizer) not in TRACEABLE:
-        return f"a {type(optimizer).__name__} optimizer steps only eagerly (compiled: torch's Adam and AdamW)"
+        return f"the {type(optimizer).__name__} optimizer steps only eagerly (compiled: torch's Adam and AdamW)"
     if optimizer_step_hooks(optimizer) is not False or global_optimizer_hooks() is not False:
         return "an optimizer step hook runs only with an eager step()"
     if any(group.get("differentiable") for group in optimizer.param_groups):

@@ -481,6 +481,43 @@ def test_the_stock_setups_compile_and_match_the_hooks(name, dynamo_graphs_only):
     assert_collection_is_sb3s(model)
 
 
+def _observation_space_updates(kind: str, updates: int = 20, **overrides: Any) -> TD3X:
+    """``updates`` gradient steps on a buffer filled with random actions, for observations other than a flat Box: a
+    dict (SB3's ``BitFlippingEnv``, continuous, through ``MultiInputPolicy``), the same with SB3's
+    ``HerReplayBuffer``, or images (SB3's ``FakeImageEnv``, uint8, through ``CnnPolicy``'s NatureCNN)."""
+    from stable_baselines3 import HerReplayBuffer
+    from stable_baselines3.common.envs import BitFlippingEnv, FakeImageEnv
+
+    kwargs: dict[str, Any] = {"learning_starts": 200, "batch_size": 32, "policy_kwargs": {"net_arch": NET}, "seed": 3}
+    if kind == "images":
+        env, policy = FakeImageEnv(screen_height=36, screen_width=36, n_channels=1, discrete=False), "CnnPolicy"
+        env.observation_space.seed(3)  # its images are draws of the space, which SB3's seed does not reach
+        kwargs["buffer_size"] = 1_000
+    else:
+        env, policy = BitFlippingEnv(n_bits=4, continuous=True, max_steps=8), "MultiInputPolicy"
+    if kind == "her":
+        kwargs |= {"replay_buffer_class": HerReplayBuffer, "replay_buffer_kwargs": {"n_sampled_goal": 4}}
+    model = TD3X(policy, env, **(kwargs | overrides))
+    model.learn(200)  # collection only
+    np.random.seed(0)
+    th.manual_seed(0)
+    model.train(gradient_steps=updates, batch_size=model.batch_size)
+    return model
+
+
+@pytest.mark.parametrize("kind", ["dict", "her", "images"])
+def test_other_observation_spaces_compile_and_match_the_hooks(kind, dynamo_graphs_only):
+    """Dict observations, hindsight relabelling (HER's rewards relabelled in numpy, before the graph) and uint8 images
+    (scaled inside the graph, as SB3's ``preprocess_obs`` does) train the same weights compiled as eagerly; a
+    different update (another tau) does not."""
+    compiled = _observation_space_updates(kind, compile_update=True)
+    eager = _observation_space_updates(kind, compile_update=False)
+    assert compiled.update_path == "compiled" and eager.update_path == "eager"
+    assert_same_weights(compiled, eager)
+    with pytest.raises(AssertionError):
+        assert_same_weights(compiled, _observation_space_updates(kind, compile_update=False, tau=0.01))
+
+
 def test_auto_compiles_a_long_run_and_it_trains_what_the_hooks_train(monkeypatch):
     """compile_update=None (auto) on a run long enough (here: every run) compiles the update, the default of a long
     run on a CPU (Inductor: the graph of test_inductor_compiles_a_users_change_as_written[stock-defaults]); the

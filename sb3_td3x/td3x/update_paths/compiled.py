@@ -204,31 +204,43 @@ _UPDATES = itertools.count()
 class _CompileSettings:
     """Around each call (read when Dynamo traces and Inductor compiles, which any call may do): Dynamo traces
     ``torch.autograd.grad`` (:func:`~sb3_td3x.td3x.optim.minimize`) and guards on the modules' hooks (torch 2.13 skips
-    those guards by default: a forward hook registered after the compilation would never run, silently), and Inductor
+    those guards by default: a forward hook registered after the compilation would never run, silently), Inductor
     draws random numbers with torch's generator, as eagerly (the same smoothing noise as the eager update, from the
-    same seed). Set and put back as attributes: ``config.patch`` costs a tenth of a millisecond per call."""
+    same seed), and SB3's ``is_image_space`` is taken as a constant of the observation space it is given (Dynamo guards
+    on that space's identity): it compares the space's bounds with numpy, which Dynamo would trace as tensors and then
+    refuse the branch on, so that image observations could not be compiled. Set and put back as attributes:
+    ``config.patch`` costs a tenth of a millisecond per call."""
 
     @staticmethod
     @functools.cache
     def settings() -> tuple[tuple[Any, str, Any], ...]:
         # Imported at the first compiled step, not with the package: Dynamo and Inductor take 2 s to import.
+        from stable_baselines3.common import preprocessing
         from torch._inductor import config as inductor_config
 
         return (
             (th._dynamo.config, "trace_autograd_ops", True),
             (th._dynamo.config, "skip_nnmodule_hook_guards", False),
             (inductor_config, "fallback_random", True),
+            # What torch.compiler.assume_constant_result sets, for the length of the call only.
+            (preprocessing.is_image_space, "_dynamo_marked_constant", True),
         )
 
     def __enter__(self) -> None:
         settings = self.settings()
-        self.saved = [getattr(config, name) for config, name, _ in settings]
-        for config, name, value in settings:
-            setattr(config, name, value)
+        self.saved = [getattr(target, name, _UNSET) for target, name, _ in settings]
+        for target, name, value in settings:
+            setattr(target, name, value)
 
     def __exit__(self, *exc: Any) -> None:
-        for (config, name, _), value in zip(self.settings(), self.saved):
-            setattr(config, name, value)
+        for (target, name, _), value in zip(self.settings(), self.saved):
+            if value is _UNSET:
+                delattr(target, name)
+            else:
+                setattr(target, name, value)
+
+
+_UNSET = object()
 
 
 def why_not_one_graph(error: BaseException) -> str:
