@@ -17,6 +17,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
@@ -516,6 +517,40 @@ def test_other_observation_spaces_compile_and_match_the_hooks(kind, dynamo_graph
     assert_same_weights(compiled, eager)
     with pytest.raises(AssertionError):
         assert_same_weights(compiled, _observation_space_updates(kind, compile_update=False, tau=0.01))
+
+
+class _DiscreteObservationEnv(gym.Env):
+    """Discrete observations (drawn from the space, seeded) and a Box action: what SB3 one-hot encodes."""
+
+    def __init__(self) -> None:
+        self.observation_space, self.action_space = gym.spaces.Discrete(5), gym.spaces.Box(-1, 1, (1,), np.float32)
+        self.t = 0
+
+    def reset(self, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        if seed is not None:
+            self.observation_space.seed(seed)
+        self.t = 0
+        return self.observation_space.sample(), {}
+
+    def step(self, action):
+        self.t += 1
+        return self.observation_space.sample(), float(action[0]), False, self.t >= 10, {}
+
+
+def test_discrete_observations_step_aside_and_say_why(dynamo_graphs_only):
+    """SB3's one-hot encoding of a Discrete observation reads the space's size as a numpy integer, which Dynamo cannot
+    make a Python int of: the compiled update steps aside, names the place, and trains what the eager one trains."""
+    def run(compile_update: bool) -> TD3X:
+        model = TD3X("MlpPolicy", _DiscreteObservationEnv(), learning_starts=100, batch_size=32, seed=3,
+                     policy_kwargs={"net_arch": NET}, compile_update=compile_update)  # fmt: skip
+        model.learn(100)
+        model.train(gradient_steps=4, batch_size=32)
+        return model
+
+    compiled, eager = run(True), run(False)
+    assert compiled.update_path == "eager" and "preprocessing.py" in compiled.update_reason
+    assert_same_weights(compiled, eager, rtol=0, atol=0)
 
 
 def test_auto_compiles_a_long_run_and_it_trains_what_the_hooks_train(monkeypatch):
