@@ -214,6 +214,17 @@ class GradientScaledCriticPolicy(TD3XPolicy):
         return GradientScaledCritic(**critic_kwargs).to(self.device)
 
 
+class DroQCriticsTD3X(TD3X):
+    """Critics with dropout and LayerNorm (DroQ's), through the network hook: random masks drawn inside the update."""
+
+    def q_network(self, input_dim, net_arch, activation_fn):
+        layers: list[nn.Module] = []
+        for width in net_arch:
+            layers += [nn.Linear(input_dim, width), nn.Dropout(0.1), nn.LayerNorm(width), activation_fn()]
+            input_dim = width
+        return nn.Sequential(*layers, nn.Linear(input_dim, 1))
+
+
 class AnnealedNoiseTD3X(TD3X):
     """Target policy smoothing noise annealed with the updates done: a Python value that changes at every step."""
 
@@ -274,6 +285,7 @@ CASES: dict[str, Case] = {
     "backward-hook-on-a-layer": Case(after=_backward_hook_on_critic_layer),
     "custom-autograd-function-in-the-critic": Case(kwargs={"policy": GradientScaledCriticPolicy}),
     "noise-annealed-with-the-updates": Case(cls=AnnealedNoiseTD3X),
+    "dropout-and-layernorm-critics": Case(cls=DroQCriticsTD3X),  # the masks drawn in the graph as eagerly
     "frozen-actor-layer": Case(after=_frozen_actor_layer),
     "weight-norm-parametrization": Case(after=_weight_norm_on_critic),
     "policy-_predict-overridden": Case(kwargs={"policy": OffsetPredictPolicy}),
@@ -359,9 +371,15 @@ PROBE_OBS, PROBE_ACTIONS = th.randn(64, 3, generator=_PROBE), th.rand(64, 1, gen
 
 @th.no_grad()
 def outputs(model: TD3X) -> th.Tensor:
-    """What the trained networks compute on fixed inputs (comparable whatever the parametrisation)."""
-    q = th.cat(TD3XCritic.forward(model.critic, PROBE_OBS, PROBE_ACTIONS), dim=1)
-    return th.cat([Actor.forward(model.actor, PROBE_OBS), q], dim=1)
+    """What the trained networks compute on fixed inputs (comparable whatever the parametrisation), in evaluation
+    mode (no dropout)."""
+    training = model.policy.training
+    model.policy.set_training_mode(False)
+    try:
+        q = th.cat(TD3XCritic.forward(model.critic, PROBE_OBS, PROBE_ACTIONS), dim=1)
+        return th.cat([Actor.forward(model.actor, PROBE_OBS), q], dim=1)
+    finally:
+        model.policy.set_training_mode(training)
 
 
 @functools.cache
