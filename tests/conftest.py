@@ -6,8 +6,10 @@ Helpers are plain functions here, imported as ``from conftest import random_batc
 import os
 import shutil
 import subprocess
+from dataclasses import dataclass
 from pathlib import Path
 
+import gymnasium as gym
 import pytest
 import torch as th
 from stable_baselines3.common.type_aliases import ReplayBufferSamples
@@ -181,3 +183,19 @@ def stopped_and_resumed(overrides: list[str], runs: Path, stop_at: int) -> tuple
     assert json.loads((stopped / "checkpoints" / "last" / META_FILE).read_text())["num_timesteps"] == stop_at
     run_experiment(compose_config([*overrides, f"resume={stopped}"]))
     return reference, stopped
+
+
+@dataclass
+class DummyEnv(gym.Env):
+    """An env with the given spaces that returns random observations and never ends (wrap it in a TimeLimit)."""
+
+    observation_space: gym.spaces.Space
+    action_space: gym.spaces.Space
+
+    def reset(self, *, seed=None, options=None):
+        if seed is not None:
+            super().reset(seed=seed)
+        return self.observation_space.sample(), {}
+
+    def step(self, action):
+        return self.observation_space.sample(), 0.0, False, False, {}

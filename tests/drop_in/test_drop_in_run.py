@@ -5,8 +5,6 @@ Mirrors SB3's ``tests/test_run.py`` (action noise, ``train_freq``, multiple envs
 (``net_arch`` variants, custom optimizer) and ``tests/test_spaces.py`` (observation and action spaces, float64).
 """
 
-from dataclasses import dataclass
-
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -16,28 +14,13 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.noise import NormalActionNoise, OrnsteinUhlenbeckActionNoise, VectorizedActionNoise
 
+from conftest import DummyEnv
 from sb3_td3x import DDPG, TD3X
 from sb3_td3x.common.buffers import TensorReplayBuffer
 
 TINY = dict(policy_kwargs=dict(net_arch=[64, 64]), learning_starts=100, batch_size=64)
 BOX_FLOAT32 = spaces.Box(low=-1, high=1, shape=(2,), dtype=np.float32)
 BOX_FLOAT64 = spaces.Box(low=-1, high=1, shape=(2,), dtype=np.float64)
-
-
-@dataclass
-class DummyEnv(gym.Env):
-    """An env with the given spaces that returns random observations and never ends (wrap it in a TimeLimit)."""
-
-    observation_space: spaces.Space
-    action_space: spaces.Space
-
-    def reset(self, *, seed=None, options=None):
-        if seed is not None:
-            super().reset(seed=seed)
-        return self.observation_space.sample(), {}
-
-    def step(self, action):
-        return self.observation_space.sample(), 0.0, False, False, {}
 
 
 # mirrors SB3 tests/test_run.py::test_deterministic_pg

@@ -22,6 +22,7 @@ import numpy as np
 import pytest
 import torch as th
 import torch.nn.functional as F
+from conftest import DummyEnv
 from stable_baselines3.common.noise import NormalActionNoise
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.torch_layers import FlattenExtractor, create_mlp
@@ -337,15 +338,22 @@ def train(case: Case, **overrides: Any) -> TD3X:
     return model
 
 
+def updates_after_collection(model: TD3X, steps: int, updates: int) -> TD3X:
+    """``learn(steps)`` with ``learning_starts >= steps`` (collection only: random actions), then ``updates`` gradient
+    steps from a fixed seed: the update alone, without the environment loop that turns float rounding into another
+    trajectory (for paths that do not round as eager autograd does)."""
+    model.learn(steps)
+    np.random.seed(0)
+    th.manual_seed(0)
+    model.train(gradient_steps=updates, batch_size=model.batch_size)
+    return model
+
+
 def train_updates(case: Case, updates: int = 100, **overrides: Any) -> TD3X:
-    """``updates`` gradient steps on a buffer filled with random actions: the update alone, without the environment
-    loop that turns float rounding into another trajectory (for paths that do not round as eager autograd does)."""
+    """``updates`` gradient steps on a buffer filled with random actions (:func:`updates_after_collection`)."""
     model = build(case, learning_starts=STEPS, **overrides)
     try:
-        model.learn(STEPS)  # collection only
-        np.random.seed(0)
-        th.manual_seed(0)
-        model.train(gradient_steps=updates, batch_size=model.batch_size)
+        updates_after_collection(model, STEPS, updates)
     finally:
         if case.teardown is not None:
             case.teardown()
@@ -501,9 +509,9 @@ def test_the_stock_setups_compile_and_match_the_hooks(name, dynamo_graphs_only):
 
 
 def _observation_space_updates(kind: str, updates: int = 20, **overrides: Any) -> TD3X:
-    """``updates`` gradient steps on a buffer filled with random actions, for observations other than a flat Box: a
-    dict (SB3's ``BitFlippingEnv``, continuous, through ``MultiInputPolicy``), the same with SB3's
-    ``HerReplayBuffer``, or images (SB3's ``FakeImageEnv``, uint8, through ``CnnPolicy``'s NatureCNN)."""
+    """``updates`` gradient steps on a buffer filled with random actions (:func:`updates_after_collection`), for
+    observations other than a flat Box: a dict (SB3's ``BitFlippingEnv``, continuous, through ``MultiInputPolicy``),
+    the same with SB3's ``HerReplayBuffer``, or images (SB3's ``FakeImageEnv``, uint8, through ``CnnPolicy``)."""
     from stable_baselines3 import HerReplayBuffer
     from stable_baselines3.common.envs import BitFlippingEnv, FakeImageEnv
 
@@ -516,12 +524,7 @@ def _observation_space_updates(kind: str, updates: int = 20, **overrides: Any) -
         env, policy = BitFlippingEnv(n_bits=4, continuous=True, max_steps=8), "MultiInputPolicy"
     if kind == "her":
         kwargs |= {"replay_buffer_class": HerReplayBuffer, "replay_buffer_kwargs": {"n_sampled_goal": 4}}
-    model = TD3X(policy, env, **(kwargs | overrides))
-    model.learn(200)  # collection only
-    np.random.seed(0)
-    th.manual_seed(0)
-    model.train(gradient_steps=updates, batch_size=model.batch_size)
-    return model
+    return updates_after_collection(TD3X(policy, env, **(kwargs | overrides)), 200, updates)
 
 
 @pytest.mark.parametrize("kind", ["dict", "her", "images"])
@@ -537,34 +540,15 @@ def test_other_observation_spaces_compile_and_match_the_hooks(kind, dynamo_graph
         assert_same_weights(compiled, _observation_space_updates(kind, compile_update=False, tau=0.01))
 
 
-class _DiscreteObservationEnv(gym.Env):
-    """Discrete observations (drawn from the space, seeded) and a Box action: what SB3 one-hot encodes."""
-
-    def __init__(self) -> None:
-        self.observation_space, self.action_space = gym.spaces.Discrete(5), gym.spaces.Box(-1, 1, (1,), np.float32)
-        self.t = 0
-
-    def reset(self, seed: int | None = None, options: dict | None = None):
-        super().reset(seed=seed)
-        if seed is not None:
-            self.observation_space.seed(seed)
-        self.t = 0
-        return self.observation_space.sample(), {}
-
-    def step(self, action):
-        self.t += 1
-        return self.observation_space.sample(), float(action[0]), False, self.t >= 10, {}
-
-
 def test_discrete_observations_step_aside_and_say_why(dynamo_graphs_only):
     """SB3's one-hot encoding of a Discrete observation reads the space's size as a numpy integer, which Dynamo cannot
     make a Python int of: the compiled update steps aside, names the place, and trains what the eager one trains."""
     def run(compile_update: bool) -> TD3X:
-        model = TD3X("MlpPolicy", _DiscreteObservationEnv(), learning_starts=100, batch_size=32, seed=3,
-                     policy_kwargs={"net_arch": NET}, compile_update=compile_update)  # fmt: skip
-        model.learn(100)
-        model.train(gradient_steps=4, batch_size=32)
-        return model
+        # A Discrete(5) space seeded anew per model: both draw the same observations.
+        env = gym.wrappers.TimeLimit(DummyEnv(gym.spaces.Discrete(5, seed=3), gym.spaces.Box(-1, 1, (1,))), 10)
+        model = TD3X("MlpPolicy", env, learning_starts=100, batch_size=32, seed=3, policy_kwargs={"net_arch": NET},
+                     compile_update=compile_update)  # fmt: skip
+        return updates_after_collection(model, 100, 4)
 
     compiled, eager = run(True), run(False)
     assert compiled.update_path == "eager" and "preprocessing.py" in compiled.update_reason
