@@ -6,6 +6,7 @@ Helpers are plain functions here, imported as ``from conftest import random_batc
 import os
 import shutil
 import subprocess
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -97,17 +98,28 @@ SLURM_HOW = 'export SLURM_CONF="$(bash .ci/slurm.sh)" (as root; it installs slur
 
 @pytest.fixture(scope="session")
 def slurm() -> dict[str, str]:
-    """The environment for commands that use the cluster (``SLURM_CONF``), once a node answers idle or busy."""
+    """The environment for commands that use the cluster (``SLURM_CONF``), once a node answers idle or busy.
+
+    A node that is finishing a job (``completing``, as when the other test worker's job has just ended) is up; a node
+    in any other state is asked again for up to a minute (it may be starting) before the tests are failed or skipped.
+    """
     problem = None
     if shutil.which("sinfo") is None:
         problem = "SLURM's commands are not installed"
     else:
-        done = subprocess.run(["sinfo", "-h", "-N", "-o", "%T"], capture_output=True, text=True, timeout=30)
-        states = done.stdout.split()
-        if done.returncode != 0:
-            problem = f"sinfo fails: {' '.join(done.stderr.split())}"
-        elif not any(state.rstrip("*") in ("idle", "mixed", "allocated") for state in states):
-            problem = f"no SLURM node is up (states: {states or 'none'})"
+        deadline = time.monotonic() + 60
+        while True:
+            done = subprocess.run(["sinfo", "-h", "-N", "-o", "%T"], capture_output=True, text=True, timeout=30)
+            states = done.stdout.split()
+            if done.returncode != 0:
+                problem = f"sinfo fails: {' '.join(done.stderr.split())}"
+                break
+            if any(state.rstrip("*") in ("idle", "mixed", "allocated", "completing") for state in states):
+                break
+            if time.monotonic() > deadline:
+                problem = f"no SLURM node is up after a minute (states: {states or 'none'})"
+                break
+            time.sleep(2)
     if problem is not None:
         if os.environ.get("CI", "").lower() == "true":
             pytest.fail(f"{problem}; CI must start SLURM first: {SLURM_HOW}")
