@@ -43,7 +43,9 @@ def minimize(optimizer: th.optim.Optimizer, loss: th.Tensor) -> None:
     """One gradient step of ``optimizer`` on ``loss``: the gradient of ``loss`` with respect to the optimizer's
     parameters (and no other tensor), then the optimizer's update (see the module's docstring)."""
     if th.compiler.is_compiling():
-        apply_gradients(optimizer, gradients(optimizer, loss))
+        # A parameter the loss does not reach (a module replaced after the optimizer was made, an unused head) gets
+        # no gradient, and the step leaves it and its state alone, as loss.backward(inputs=...) and step() do.
+        apply_gradients(optimizer, list(th.autograd.grad(loss, _prepared(optimizer).params, allow_unused=True)))
         return
     optimizer.zero_grad(set_to_none=True)
     loss.backward(inputs=trainable(optimizer))
@@ -59,9 +61,10 @@ def gradients(optimizer: th.optim.Optimizer, loss: th.Tensor) -> list[th.Tensor]
     return list(th.autograd.grad(loss, trainable(optimizer)))
 
 
-def apply_gradients(optimizer: th.optim.Optimizer, grads: list[th.Tensor]) -> None:
+def apply_gradients(optimizer: th.optim.Optimizer, grads: list[th.Tensor | None]) -> None:
     """The optimizer's update with ``grads`` (one per trainable parameter, :func:`trainable`'s order): eagerly, the
-    gradients set as ``.grad`` and ``optimizer.step()``; compiled, torch's functional Adam on the optimizer's state."""
+    gradients set as ``.grad`` and ``optimizer.step()``; compiled, torch's functional Adam on the optimizer's state.
+    A parameter whose gradient is ``None`` is left as it is, its state too (as ``step()`` leaves it)."""
     if not th.compiler.is_compiling():
         params = trainable(optimizer)
         if len(grads) != len(params):
@@ -74,13 +77,16 @@ def apply_gradients(optimizer: th.optim.Optimizer, grads: list[th.Tensor]) -> No
     with th.no_grad():
         for group in step.groups:
             group_grads, grads = grads[: len(group.params)], grads[len(group.params) :]
+            kept = [i for i, g in enumerate(group_grads) if g is not None]  # known when tracing: no guard, no branch
+            if not kept:
+                continue
             functional_adam(
-                group.params,
-                group_grads,
-                group.exp_avgs,
-                group.exp_avg_sqs,
-                group.max_exp_avg_sqs,
-                group.steps,
+                [group.params[i] for i in kept],
+                [group_grads[i] for i in kept],
+                [group.exp_avgs[i] for i in kept],
+                [group.exp_avg_sqs[i] for i in kept],
+                [group.max_exp_avg_sqs[i] for i in kept] if group.max_exp_avg_sqs else [],
+                [group.steps[i] for i in kept],
                 foreach=True,
                 capturable=True,  # the learning rate is a tensor
                 lr=group.lr,
@@ -146,7 +152,8 @@ def prepare(optimizer: th.optim.Optimizer) -> None:
     old = optimizer.__dict__.get(PREPARED)
     groups = [_group(optimizer, group, old.groups[k] if isinstance(old, _CompiledStep) and k < len(old.groups) else None)
               for k, group in enumerate(optimizer.param_groups)]  # fmt: skip
-    if not isinstance(old, _CompiledStep) or any(new is not kept for new, kept in zip(groups, old.groups)):
+    if (not isinstance(old, _CompiledStep) or len(groups) != len(old.groups)  # add_param_group, say
+            or any(new is not kept for new, kept in zip(groups, old.groups))):
         optimizer.__dict__[PREPARED] = _CompiledStep([p for g in groups for p in g.params], groups)
 
 

@@ -508,6 +508,81 @@ def test_the_stock_setups_compile_and_match_the_hooks(name, dynamo_graphs_only):
     assert_collection_is_sb3s(model)
 
 
+# --- changes made between two trainings (a callback, a notebook): the update made before must not outlive them ----------
+def _critic_optimizer_over_qf0_only(model: TD3X) -> None:
+    model.critic.optimizer = th.optim.Adam(model.critic.qf0.parameters(), lr=1e-3)
+
+
+def _add_qf1_param_group(model: TD3X) -> None:
+    model.critic.optimizer.add_param_group({"params": list(model.critic.qf1.parameters())})
+
+
+def _replace_last_critic_layer(model: TD3X) -> None:
+    """A layer reset as a new module (as plasticity research does), its parameters given to the optimizer as a new
+    group; the old layer's stay in the optimizer without a gradient, which Adam's ``step()`` skips."""
+    layer = nn.Linear(NET[-1], 1)
+    with th.no_grad():
+        layer.weight.copy_(th.randn(1, NET[-1], generator=th.Generator().manual_seed(3)))
+        layer.bias.zero_()
+    model.critic.qf0[-1] = layer
+    model.critic.optimizer.add_param_group({"params": list(layer.parameters())})
+
+
+def _set(**values: Any) -> Callable[[TD3X], None]:
+    return lambda model: model.__dict__.update(values)
+
+
+def _adam_betas_and_weight_decay(model: TD3X) -> None:
+    for group in model.critic.optimizer.param_groups:
+        group.update(betas=(0.5, 0.9), weight_decay=0.5)
+
+
+def _targets_loaded(model: TD3X) -> None:
+    model.actor_target.load_state_dict(model.actor.state_dict())
+    with th.no_grad():
+        for p in model.critic_target.parameters():
+            p.mul_(0.5)
+
+
+def _new_critic_optimizer(model: TD3X) -> None:
+    model.critic.optimizer = th.optim.Adam(model.critic.parameters(), lr=5e-3)
+
+
+#: name: (a change made on the built model, a change made after its first 10 updates)
+BETWEEN_TRAININGS: dict[str, tuple[Callable[[TD3X], None] | None, Callable[[TD3X], None]]] = {
+    "param-group-added": (_critic_optimizer_over_qf0_only, _add_qf1_param_group),
+    "layer-replaced-as-a-new-module": (None, _replace_last_critic_layer),
+    "gamma-tau-and-policy_delay-set": (None, _set(gamma=0.5, tau=0.3, policy_delay=3)),
+    "adam-betas-and-weight-decay-set": (None, _adam_betas_and_weight_decay),
+    "targets-loaded": (None, _targets_loaded),
+    "critic-optimizer-replaced": (None, _new_critic_optimizer),
+}
+
+
+@pytest.mark.parametrize("name", list(BETWEEN_TRAININGS))
+def test_a_change_between_two_trainings_is_compiled_as_written(name, dynamo_graphs_only):
+    """A change made between two ``train()`` calls reaches the compiled update (recompiled where it must be) as it
+    reaches the eager one: 10 updates, the change, 10 more, compiled and eagerly from one seed."""
+    before, between = BETWEEN_TRAININGS[name]
+
+    def run(compile_update: bool, change: bool = True) -> TD3X:
+        model = build(Case(after=before), learning_starts=STEPS, compile_update=compile_update)
+        model.learn(STEPS)
+        np.random.seed(0)
+        th.manual_seed(0)
+        model.train(gradient_steps=10, batch_size=model.batch_size)
+        if change:
+            between(model)
+        model.train(gradient_steps=10, batch_size=model.batch_size)
+        return model
+
+    compiled, eager = run(True), run(False)
+    assert compiled.update_path == "compiled", compiled.update_reason
+    assert_same_weights(compiled, eager)
+    rounding, moved = max_difference(compiled, eager), max_difference(eager, run(False, change=False))
+    assert rounding < 0.05 * moved, f"{name}: the change moves the weights by {moved:.2e}, the paths differ by {rounding:.2e}"
+
+
 def _observation_space_updates(kind: str, updates: int = 20, **overrides: Any) -> TD3X:
     """``updates`` gradient steps on a buffer filled with random actions (:func:`updates_after_collection`), for
     observations other than a flat Box: a dict (SB3's ``BitFlippingEnv``, continuous, through ``MultiInputPolicy``),
