@@ -132,6 +132,31 @@ def test_a_hook_that_breaks_the_graph_runs_eagerly_and_says_why(capsys):
         assert th.equal(a, b)
 
 
+def test_a_step_aside_mid_run_says_from_which_update(dynamo_graphs_only):
+    """An update that compiled for a while and then steps aside (here the critic's optimizer replaced by SGD between
+    two learn() calls) says from which update and timestep it ran eagerly, so that a run's records do not say it never
+    compiled; a step aside at the first compiled update says no more than why."""
+
+    def trained(compile_update):
+        model = small(batch_size=16, compile_update=compile_update)
+        model.learn(30)
+        model.critic.optimizer = th.optim.SGD(model.critic.parameters(), lr=1e-3)
+        model.learn(10, reset_num_timesteps=False)
+        return model
+
+    fast, eager = trained(True), trained(False)
+    assert fast.update_path == "eager"
+    assert fast.update_reason.endswith(
+        "the SGD optimizer steps only eagerly (compiled: torch's Adam and AdamW) (the critic's optimizer): the update "
+        "runs eagerly, as written, from update 21 on (timestep 31; 18 updates ran compiled before)"
+    ), fast.update_reason  # of the first 20, two ran eagerly: each optimizer's first step makes Adam's state
+    for a, b in zip(fast.policy.parameters(), eager.policy.parameters()):
+        th.testing.assert_close(a, b, rtol=1e-4, atol=1e-5)
+    from_the_start = small(batch_size=16, compile_update=True, policy_kwargs={"net_arch": [16], "optimizer_class": th.optim.SGD})
+    reason = from_the_start.learn(20).update_reason
+    assert from_the_start.update_path == "eager" and reason.endswith("the update runs eagerly, as written"), reason
+
+
 def test_changed_hooks_and_the_reference_class():
     class Sub(TD3X):
         def td_target(self, rewards, dones, discounts, next_q):

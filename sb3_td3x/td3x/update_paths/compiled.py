@@ -27,7 +27,7 @@ from typing import Any
 
 import torch as th
 
-from sb3_td3x.td3x.optim import PREPARED, has_state, prepare
+from sb3_td3x.td3x.optim import PREPARED, TRACEABLE, has_state, prepare, why_not_traceable
 from sb3_td3x.td3x.hooks import changed_hooks
 
 log = logging.getLogger(__name__)
@@ -146,12 +146,17 @@ class CompiledUpdate:
     def __call__(self, batch_size: int, update_actor: bool) -> Infos:
         model = self.model
         optimizers = (model.critic.optimizer, model.actor.optimizer)
-        if self.stepped_aside is not None or not all(has_state(opt) for opt in optimizers) or _dispatch_mode_active():
+        if self.stepped_aside is not None or _dispatch_mode_active():
             return model.gradient_step(batch_size, update_actor)
+        for optimizer in optimizers:  # before the wait for state below: SGD without momentum never makes any
+            if type(optimizer) not in TRACEABLE:
+                return self._step_aside(_whose(why_not_traceable(optimizer), optimizer, optimizers), batch_size, update_actor)
+        if not all(has_state(opt) for opt in optimizers):
+            return model.gradient_step(batch_size, update_actor)  # a first step makes Adam's state
         for optimizer in optimizers:
             prepare(optimizer)  # a schedule's learning rate, read by the graph from a tensor
             if isinstance(why := getattr(optimizer, PREPARED), str):
-                return self._step_aside(f"{why} (the {'critic' if optimizer is optimizers[0] else 'actor'}'s optimizer)", batch_size, update_actor)
+                return self._step_aside(_whose(why, optimizer, optimizers), batch_size, update_actor)
         args = (batch_size,) if self.whole_step else (model.sample_batch(batch_size),)  # step 4
         try:
             with _CompileSettings():
@@ -159,6 +164,7 @@ class CompiledUpdate:
         except (th._dynamo.exc.TorchDynamoException, th._dynamo.exc.FailOnRecompileLimitHit) as error:
             # Raised while tracing or compiling, before the graph ran: nothing of this step has happened yet.
             return self._step_aside(why_not_one_graph(error), *args, update_actor)
+        model._updates_compiled = getattr(model, "_updates_compiled", 0) + 1  # for the records of a later step aside
         if self.copy_outputs:
             return tuple({key: value.clone() for key, value in info.items()} for info in infos)  # type: ignore[return-value]
         return infos
@@ -168,11 +174,19 @@ class CompiledUpdate:
         model = self.model
         self.stepped_aside = why
         model.update_path = "eager"
-        model.update_reason = f"{model.compile_reason}, but {why}: the update runs eagerly, as written"
+        # Where it stepped aside: the records of a long run that compiled for a while must not say it never did.
+        ran = getattr(model, "_updates_compiled", 0)
+        when = (f", from update {model._n_updates:,} on (timestep {model.num_timesteps:,}; {ran:,} updates ran compiled "
+                "before)") if ran else ""
+        model.update_reason = f"{model.compile_reason}, but {why}: the update runs eagerly, as written{when}"
         log.warning("TD3X: %s.", model.update_reason)
         if isinstance(batch_or_size, int):
             return model.gradient_step(batch_or_size, update_actor)
         return model.update_from_batch(batch_or_size, update_actor)
+
+
+def _whose(why: str, optimizer: th.optim.Optimizer, optimizers: tuple[th.optim.Optimizer, ...]) -> str:
+    return f"{why} (the {'critic' if optimizer is optimizers[0] else 'actor'}'s optimizer)"
 
 
 def _dispatch_mode_active() -> bool:
