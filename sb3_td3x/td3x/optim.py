@@ -28,6 +28,10 @@ from sb3_td3x.common.torch_internals import global_optimizer_hooks, optimizer_st
 #: may do anything).
 TRACEABLE = (th.optim.Adam, th.optim.AdamW)
 
+#: Why a compiled step stops before it runs when a gradient reaches a parameter that has no Adam state yet (a
+#: parameter group added, a layer unfrozen): the step runs eagerly, which makes the state, and the next one compiles.
+FIRST_GRADIENT = "sb3_td3x.td3x.optim: a parameter's first gradient (Adam makes its state eagerly)"
+
 #: The attribute where :func:`prepare` leaves, for a compiled step, an optimizer's learning rates as 0-d tensors (one
 #: per parameter group: a schedule then changes a tensor's value, not a constant of the graph, and recompiles nothing),
 #: or the reason it cannot be stepped inside a graph.
@@ -78,6 +82,8 @@ def apply_gradients(optimizer: th.optim.Optimizer, grads: list[th.Tensor | None]
         for group in step.groups:
             group_grads, grads = grads[: len(group.params)], grads[len(group.params) :]
             kept = [i for i, g in enumerate(group_grads) if g is not None]  # known when tracing: no guard, no branch
+            if any(group.steps[i] is None for i in kept):
+                th._dynamo.graph_break(msg=FIRST_GRADIENT)  # Adam makes its state eagerly: this step runs eagerly
             if not kept:
                 continue
             functional_adam(
@@ -100,10 +106,11 @@ class _Group:
     optimizer's own dictionaries, whose learning rate changes with a schedule."""
 
     params: list[th.Tensor]
-    exp_avgs: list[th.Tensor]
-    exp_avg_sqs: list[th.Tensor]
-    max_exp_avg_sqs: list[th.Tensor]
-    steps: list[th.Tensor]
+    # None for a parameter without state yet (no gradient so far: a head kept for later, a layer just added)
+    exp_avgs: list[th.Tensor | None]
+    exp_avg_sqs: list[th.Tensor | None]
+    max_exp_avg_sqs: list[th.Tensor | None]
+    steps: list[th.Tensor | None]
     lr: th.Tensor  # 0-d, refreshed before each call
     options: dict[str, Any]
     lr_value: float  # what lr holds
@@ -118,7 +125,7 @@ class _CompiledStep:
 def _prepared(optimizer: th.optim.Optimizer) -> _CompiledStep:
     prepared = getattr(optimizer, PREPARED, "the optimizer was not prepared for a compiled step (sb3_td3x.td3x.optim.prepare)")
     if isinstance(prepared, str):
-        th._dynamo.graph_break(f"sb3_td3x.td3x.optim: {prepared}")
+        th._dynamo.graph_break(msg=f"sb3_td3x.td3x.optim: {prepared}")  # msg=: a positional one is lost (torch 2.13)
     return prepared
 
 
@@ -161,7 +168,7 @@ def _group(optimizer: th.optim.Optimizer, group: dict[str, Any], old: _Group | N
     """What a compiled step reads of ``group``: ``old`` itself (its learning rate refreshed) where nothing else
     changed, else made anew."""
     params = [p for p in group["params"] if p.requires_grad]
-    states = [optimizer.state[p] for p in params]
+    states = [optimizer.state.get(p) or {} for p in params]
     beta1, beta2 = group["betas"]
     options = {
         "beta1": beta1, "beta2": beta2, "eps": group["eps"], "weight_decay": group["weight_decay"],
@@ -174,7 +181,7 @@ def _group(optimizer: th.optim.Optimizer, group: dict[str, Any], old: _Group | N
         and options == old.options
         and len(params) == len(old.params)
         and all(p is q for p, q in zip(params, old.params))
-        and all(st["exp_avg"] is m and st["step"] is n for st, m, n in zip(states, old.exp_avgs, old.steps))
+        and all(st.get("exp_avg") is m and st.get("step") is n for st, m, n in zip(states, old.exp_avgs, old.steps))
     )
     if same:
         if lr != old.lr_value:
@@ -183,12 +190,14 @@ def _group(optimizer: th.optim.Optimizer, group: dict[str, Any], old: _Group | N
         return old  # type: ignore[return-value]
     lr_tensor = th.full((), lr, device=params[0].device)
     return _Group(
-        params, [st["exp_avg"] for st in states], [st["exp_avg_sq"] for st in states],
-        [st["max_exp_avg_sq"] for st in states] if group["amsgrad"] else [], [st["step"] for st in states],
+        params, [st.get("exp_avg") for st in states], [st.get("exp_avg_sq") for st in states],
+        [st.get("max_exp_avg_sq") for st in states] if group["amsgrad"] else [], [st.get("step") for st in states],
         lr_tensor, options, lr,
     )  # fmt: skip
 
 
 def has_state(optimizer: th.optim.Optimizer) -> bool:
-    """Whether every trainable parameter of ``optimizer`` has its state (made by the first ``step()``)."""
-    return all(optimizer.state.get(p) for p in trainable(optimizer))
+    """Whether ``optimizer`` has taken its first step: its state made, for the parameters that had a gradient (one
+    that never has one, an unused head, never gets state; one whose first gradient comes in a compiled step makes
+    that step run eagerly, :data:`FIRST_GRADIENT`)."""
+    return any(optimizer.state.get(p) for p in trainable(optimizer))

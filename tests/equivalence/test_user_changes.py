@@ -456,6 +456,9 @@ def test_a_users_change_is_compiled_as_written(name, dynamo_graphs_only):
         assert compiled.update_path == "eager" and STEPS_ASIDE[name] in compiled.update_reason, compiled.update_reason
     else:
         assert compiled.update_path == "compiled", compiled.update_reason
+        # all but those before each optimizer's first step (Adam's state): the actor's comes at update 2, or 3 where
+        # should_update_actor is overridden
+        assert compiled._updates_compiled >= 17, f"{compiled._updates_compiled} of 20 updates ran compiled"
     assert_same_weights(compiled, eager)
     if name not in COLLECTION_ONLY:  # the change matters: a path that dropped it would end far from the reference
         assert_far_beyond_rounding(compiled, eager, name)
@@ -578,9 +581,30 @@ def test_a_change_between_two_trainings_is_compiled_as_written(name, dynamo_grap
 
     compiled, eager = run(True), run(False)
     assert compiled.update_path == "compiled", compiled.update_reason
+    # Eager: each optimizer's first step (it makes Adam's state), and the first after the change where it brings
+    # parameters without state (a group added, a new layer, a new optimizer)
+    new_state = name in ("param-group-added", "layer-replaced-as-a-new-module", "critic-optimizer-replaced")
+    assert compiled._updates_compiled == 18 - new_state, f"{compiled._updates_compiled} of 20 updates ran compiled"
     assert_same_weights(compiled, eager)
     rounding, moved = max_difference(compiled, eager), max_difference(eager, run(False, change=False))
     assert rounding < 0.05 * moved, f"{name}: the change moves the weights by {moved:.2e}, the paths differ by {rounding:.2e}"
+
+
+def test_a_parameter_that_never_has_a_gradient_leaves_the_update_compiled(dynamo_graphs_only):
+    """A parameter in the critic's optimizer that the loss never reaches (a head kept for later) gets no Adam state,
+    eagerly or compiled; the update still compiles (it once waited for that state, and so ran eagerly at every step
+    while update_path said compiled) and trains what the eager one trains."""
+
+    def unused_head(model: TD3X) -> None:
+        model.critic.extra = nn.Linear(4, 1)
+        model.critic.optimizer = th.optim.Adam(model.critic.parameters(), lr=1e-3)
+
+    compiled = train_updates(Case(after=unused_head), updates=20, compile_update=True)
+    eager = train_updates(Case(after=unused_head), updates=20, compile_update=False)
+    assert compiled.update_path == "compiled" and compiled._updates_compiled == 18, compiled._updates_compiled
+    assert_same_weights(compiled, eager)
+    for model in (compiled, eager):
+        assert all(p not in model.critic.optimizer.state for p in model.critic.extra.parameters())
 
 
 def _observation_space_updates(kind: str, updates: int = 20, **overrides: Any) -> TD3X:

@@ -27,7 +27,7 @@ from typing import Any
 
 import torch as th
 
-from sb3_td3x.td3x.optim import PREPARED, TRACEABLE, has_state, prepare, why_not_traceable
+from sb3_td3x.td3x.optim import FIRST_GRADIENT, PREPARED, TRACEABLE, has_state, prepare, why_not_traceable
 from sb3_td3x.td3x.hooks import changed_hooks
 
 log = logging.getLogger(__name__)
@@ -131,6 +131,9 @@ class CompiledUpdate:
     def __init__(self, model: Any, mode: str | None = None):
         self.model = model
         self.stepped_aside: str | None = None
+        # The updates its compiled graphs made, over the model's life (a choice made again keeps the count): the
+        # records of a later step aside say how many (_step_aside), and the tests that the graphs did run.
+        model._updates_compiled = getattr(model, "_updates_compiled", 0)
         # In CUDA graphs (reduce-overhead) the outputs live in the graph's memory, which the next replay overwrites:
         # the statistics of a train() call's gradient steps are copied out after each step.
         self.copy_outputs = mode == "reduce-overhead"
@@ -163,8 +166,10 @@ class CompiledUpdate:
                 infos = self._compiled[update_actor](*args)
         except (th._dynamo.exc.TorchDynamoException, th._dynamo.exc.FailOnRecompileLimitHit) as error:
             # Raised while tracing or compiling, before the graph ran: nothing of this step has happened yet.
+            if FIRST_GRADIENT in str(error):  # this step eagerly (it makes the state), the next ones compiled
+                return self._eager(*args, update_actor)
             return self._step_aside(why_not_one_graph(error), *args, update_actor)
-        model._updates_compiled = getattr(model, "_updates_compiled", 0) + 1  # for the records of a later step aside
+        model._updates_compiled += 1
         if self.copy_outputs:
             return tuple({key: value.clone() for key, value in info.items()} for info in infos)  # type: ignore[return-value]
         return infos
@@ -175,14 +180,18 @@ class CompiledUpdate:
         self.stepped_aside = why
         model.update_path = "eager"
         # Where it stepped aside: the records of a long run that compiled for a while must not say it never did.
-        ran = getattr(model, "_updates_compiled", 0)
+        ran = model._updates_compiled
         when = (f", from update {model._n_updates:,} on (timestep {model.num_timesteps:,}; {ran:,} updates ran compiled "
                 "before)") if ran else ""
         model.update_reason = f"{model.compile_reason}, but {why}: the update runs eagerly, as written{when}"
         log.warning("TD3X: %s.", model.update_reason)
+        return self._eager(batch_or_size, update_actor)
+
+    def _eager(self, batch_or_size: Any, update_actor: bool) -> Infos:
+        """This step eagerly: sampling too, or on the batch already sampled."""
         if isinstance(batch_or_size, int):
-            return model.gradient_step(batch_or_size, update_actor)
-        return model.update_from_batch(batch_or_size, update_actor)
+            return self.model.gradient_step(batch_or_size, update_actor)
+        return self.model.update_from_batch(batch_or_size, update_actor)
 
 
 def _whose(why: str, optimizer: th.optim.Optimizer, optimizers: tuple[th.optim.Optimizer, ...]) -> str:
