@@ -131,6 +131,7 @@ class CompiledUpdate:
     def __init__(self, model: Any, mode: str | None = None):
         self.model = model
         self.stepped_aside: str | None = None
+        self.first_gradients = 0  # steps run eagerly to make a parameter's Adam state (a bound, should it not come)
         # The updates its compiled graphs made, over the model's life (a choice made again keeps the count): the
         # records of a later step aside say how many (_step_aside), and the tests that the graphs did run.
         model._updates_compiled = getattr(model, "_updates_compiled", 0)
@@ -166,7 +167,8 @@ class CompiledUpdate:
                 infos = self._compiled[update_actor](*args)
         except (th._dynamo.exc.TorchDynamoException, th._dynamo.exc.FailOnRecompileLimitHit) as error:
             # Raised while tracing or compiling, before the graph ran: nothing of this step has happened yet.
-            if FIRST_GRADIENT in str(error):  # this step eagerly (it makes the state), the next ones compiled
+            if FIRST_GRADIENT in str(error) and self.first_gradients < 100:  # this step eagerly: it makes the state
+                self.first_gradients += 1
                 return self._eager(*args, update_actor)
             return self._step_aside(why_not_one_graph(error), *args, update_actor)
         model._updates_compiled += 1
