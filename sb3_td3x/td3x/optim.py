@@ -28,6 +28,10 @@ from sb3_td3x.common.torch_internals import global_optimizer_hooks, optimizer_st
 #: may do anything).
 TRACEABLE = (th.optim.Adam, th.optim.AdamW)
 
+#: What :func:`why_not_traceable` says of an Adam that has not taken its first step: that step runs eagerly (it makes
+#: the state), the next ones compiled. Every other reason steps the update aside for good.
+NO_STATE = "the optimizer has not taken its first step (its state is made eagerly)"
+
 #: Why a compiled step stops before it runs when a gradient reaches a parameter that has no Adam state yet (a
 #: parameter group added, a layer unfrozen): the step runs eagerly, which makes the state, and the next one compiles.
 FIRST_GRADIENT = "sb3_td3x.td3x.optim: a parameter's first gradient (Adam makes its state eagerly)"
@@ -141,7 +145,7 @@ def why_not_traceable(optimizer: th.optim.Optimizer) -> str | None:
     if any(group.get("differentiable") for group in optimizer.param_groups):
         return "a differentiable optimizer steps only eagerly"
     if not has_state(optimizer):
-        return "the optimizer has not taken its first step (its state is made eagerly)"
+        return NO_STATE
     if hooked := [p for p in trainable(optimizer) if p._backward_hooks or getattr(p, "_post_accumulate_grad_hooks", None)]:
         return f"a gradient hook on a parameter (shape {tuple(hooked[0].shape)}) runs only in an eager backward pass"
     return None

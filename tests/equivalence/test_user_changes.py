@@ -569,11 +569,9 @@ def test_a_change_between_two_trainings_is_compiled_as_written(name, dynamo_grap
     before, between = BETWEEN_TRAININGS[name]
 
     def run(compile_update: bool, change: bool = True) -> TD3X:
-        model = build(Case(after=before), learning_starts=STEPS, compile_update=compile_update)
-        model.learn(STEPS)
-        np.random.seed(0)
-        th.manual_seed(0)
-        model.train(gradient_steps=10, batch_size=model.batch_size)
+        model = updates_after_collection(
+            build(Case(after=before), learning_starts=STEPS, compile_update=compile_update), STEPS, 10
+        )
         if change:
             between(model)
         model.train(gradient_steps=10, batch_size=model.batch_size)

@@ -27,7 +27,7 @@ from typing import Any
 
 import torch as th
 
-from sb3_td3x.td3x.optim import FIRST_GRADIENT, PREPARED, TRACEABLE, has_state, prepare, why_not_traceable
+from sb3_td3x.td3x.optim import FIRST_GRADIENT, NO_STATE, PREPARED, prepare
 from sb3_td3x.td3x.hooks import changed_hooks
 
 log = logging.getLogger(__name__)
@@ -152,15 +152,12 @@ class CompiledUpdate:
         optimizers = (model.critic.optimizer, model.actor.optimizer)
         if self.stepped_aside is not None or _dispatch_mode_active():
             return model.gradient_step(batch_size, update_actor)
-        for optimizer in optimizers:  # before the wait for state below: SGD without momentum never makes any
-            if type(optimizer) not in TRACEABLE:
-                return self._step_aside(_whose(why_not_traceable(optimizer), optimizer, optimizers), batch_size, update_actor)
-        if not all(has_state(opt) for opt in optimizers):
-            return model.gradient_step(batch_size, update_actor)  # a first step makes Adam's state
         for optimizer in optimizers:
             prepare(optimizer)  # a schedule's learning rate, read by the graph from a tensor
-            if isinstance(why := getattr(optimizer, PREPARED), str):
-                return self._step_aside(_whose(why, optimizer, optimizers), batch_size, update_actor)
+            if (why := getattr(optimizer, PREPARED)) == NO_STATE:  # SGD without momentum says what it is, never this
+                return model.gradient_step(batch_size, update_actor)  # a first step makes Adam's state
+            if isinstance(why, str):
+                return self._step_aside(f"{why} (the {'critic' if optimizer is optimizers[0] else 'actor'}'s optimizer)", batch_size, update_actor)
         args = (batch_size,) if self.whole_step else (model.sample_batch(batch_size),)  # step 4
         try:
             with _CompileSettings():
@@ -194,10 +191,6 @@ class CompiledUpdate:
         if isinstance(batch_or_size, int):
             return self.model.gradient_step(batch_or_size, update_actor)
         return self.model.update_from_batch(batch_or_size, update_actor)
-
-
-def _whose(why: str, optimizer: th.optim.Optimizer, optimizers: tuple[th.optim.Optimizer, ...]) -> str:
-    return f"{why} (the {'critic' if optimizer is optimizers[0] else 'actor'}'s optimizer)"
 
 
 def _dispatch_mode_active() -> bool:
