@@ -20,12 +20,13 @@ class GradClipTD3X(TD3X):
 
     def optimize_critic(self, loss: th.Tensor) -> None:
         optimizer = self.critic.optimizer
-        grads = gradients(optimizer, loss)  # d loss / d p for each parameter the optimizer steps
+        # d loss / d p for each parameter the optimizer steps (None for one the loss does not reach: it is not stepped)
+        grads = gradients(optimizer, loss)
         # clip_grad_norm_'s rule: scale every gradient by max_norm / norm where the norm is larger. All tensor
         # operations (no .item()): no host-device synchronisation, and the step compiles with the rest of the update.
-        norm = th.linalg.vector_norm(th.stack([th.linalg.vector_norm(g) for g in grads]))
+        norm = th.linalg.vector_norm(th.stack([th.linalg.vector_norm(g) for g in grads if g is not None]))
         scale = (self.max_grad_norm / (norm + 1e-6)).clamp(max=1.0)
-        apply_gradients(optimizer, [g * scale for g in grads])
+        apply_gradients(optimizer, [None if g is None else g * scale for g in grads])
 
 
 if __name__ == "__main__":

@@ -53,20 +53,20 @@ def minimize(optimizer: th.optim.Optimizer, loss: th.Tensor) -> None:
     if th.compiler.is_compiling():
         # A parameter the loss does not reach (a module replaced after the optimizer was made, an unused head) gets
         # no gradient, and the step leaves it and its state alone, as loss.backward(inputs=...) and step() do.
-        apply_gradients(optimizer, list(th.autograd.grad(loss, _prepared(optimizer).params, allow_unused=True)))
+        apply_gradients(optimizer, gradients(optimizer, loss))
         return
     optimizer.zero_grad(set_to_none=True)
     loss.backward(inputs=trainable(optimizer))
     optimizer.step()
 
 
-def gradients(optimizer: th.optim.Optimizer, loss: th.Tensor) -> list[th.Tensor]:
+def gradients(optimizer: th.optim.Optimizer, loss: th.Tensor) -> list[th.Tensor | None]:
     """The gradient of ``loss`` with respect to each of the optimizer's trainable parameters (:func:`trainable`'s
     order), with ``torch.autograd.grad``: to change them before :func:`apply_gradients` (clipping, say) in a way that
-    compiles with the rest of the update."""
-    if th.compiler.is_compiling():
-        return list(th.autograd.grad(loss, _prepared(optimizer).params))
-    return list(th.autograd.grad(loss, trainable(optimizer)))
+    compiles with the rest of the update. ``None`` for a parameter the loss does not reach (an unused head): as
+    ``loss.backward()`` leaves its ``.grad`` unset, and :func:`apply_gradients` then leaves it and its state alone."""
+    params = _prepared(optimizer).params if th.compiler.is_compiling() else trainable(optimizer)
+    return list(th.autograd.grad(loss, params, allow_unused=True))
 
 
 def apply_gradients(optimizer: th.optim.Optimizer, grads: list[th.Tensor | None]) -> None:

@@ -155,10 +155,10 @@ class ClippedTD3X(TD3X):
     :func:`~sb3_td3x.td3x.optim.apply_gradients`: compiled in one graph with the rest."""
 
     def optimize_critic(self, loss):
-        grads = gradients(self.critic.optimizer, loss)
-        norm = th.linalg.vector_norm(th.stack([th.linalg.vector_norm(g) for g in grads]))
+        grads = gradients(self.critic.optimizer, loss)  # None for a parameter the loss does not reach
+        norm = th.linalg.vector_norm(th.stack([th.linalg.vector_norm(g) for g in grads if g is not None]))
         scale = (0.05 / (norm + 1e-6)).clamp(max=1.0)
-        apply_gradients(self.critic.optimizer, [g * scale for g in grads])
+        apply_gradients(self.critic.optimizer, [None if g is None else g * scale for g in grads])
 
 
 class ZeroGradClippedTD3X(TD3X):
@@ -190,6 +190,28 @@ def test_a_clipped_critic_step_is_compiled_when_written_with_gradients_and_apply
     zero_grad = small(cls=ZeroGradClippedTD3X, compile_update=True)
     train_fed(zero_grad, data)
     assert zero_grad.update_path == "eager" and "Optimizer.zero_grad" in zero_grad.update_reason
+
+
+def test_a_clipped_step_leaves_a_parameter_the_loss_does_not_reach_as_backward_and_step_do(dynamo_graphs_only):
+    """An optimizer holding a parameter its loss never reaches (an unused head): gradients() gives it ``None`` (as
+    ``loss.backward()`` leaves its ``.grad`` unset) instead of torch's "appears to not have been used in the graph",
+    apply_gradients() leaves it and its Adam state alone, and the step is clip_grad_norm_'s, eager and compiled."""
+    models = [small(cls=ClippedTD3X), small(cls=ClippedTD3X, compile_update=True), small(cls=ZeroGradClippedTD3X)]
+    heads = []
+    for model in models[1:]:
+        model.policy.load_state_dict(models[0].policy.state_dict())
+    for model in models:
+        heads.append(th.nn.Parameter(th.ones(3)))
+        model.critic.optimizer.add_param_group({"params": [heads[-1]]})
+    data = batches(6)
+    for model in models:
+        train_fed(model, data)
+    eager, compiled, reference = models
+    assert compiled.update_path == "compiled", compiled.update_reason
+    assert_same_weights(eager, compiled, rtol=1e-4, atol=1e-5)
+    assert_same_weights(reference, eager, rtol=1e-5, atol=1e-6)
+    for model, head in zip(models, heads):
+        assert th.equal(head, th.ones(3)) and head not in model.critic.optimizer.state
 
 
 def test_cuda_graph_needs_cuda():
