@@ -16,6 +16,7 @@ the update then runs eagerly. What the graph reads of an optimizer is made ready
 
 from __future__ import annotations
 
+import inspect
 from dataclasses import dataclass
 from typing import Any
 
@@ -27,6 +28,10 @@ from sb3_td3x.common.torch_internals import global_optimizer_hooks, optimizer_st
 #: The optimizers :func:`minimize` steps inside a compiled graph: torch's own classes, not subclasses (whose ``step``
 #: may do anything).
 TRACEABLE = (th.optim.Adam, th.optim.AdamW)
+
+#: Torch's own ``step`` of each of them (under the profiling wrapper ``Optimizer.__init__`` puts on the class): a
+#: ``step`` replaced on the class or the instance is the user's, which the functional Adam would not run.
+_TORCH_STEPS = {cls: inspect.unwrap(cls.step) for cls in TRACEABLE}
 
 #: What :func:`why_not_traceable` says of an Adam that has not taken its first step: that step runs eagerly (it makes
 #: the state), the next ones compiled. Every other reason steps the update aside for good.
@@ -135,11 +140,14 @@ def _prepared(optimizer: th.optim.Optimizer) -> _CompiledStep:
 
 def why_not_traceable(optimizer: th.optim.Optimizer) -> str | None:
     """Why :func:`minimize` cannot step ``optimizer`` inside a compiled graph, or ``None`` where it can: torch's
-    ``Adam`` or ``AdamW`` (not a subclass), without step hooks, not differentiable, its state made by a first
-    ``step()``, and no gradient hook on its parameters (``register_hook``, ``register_post_accumulate_grad_hook``:
-    a graph differentiating with ``torch.autograd.grad`` would not run them)."""
+    ``Adam`` or ``AdamW`` (not a subclass, its ``step`` torch's own), without step hooks, not differentiable, its
+    state made by a first ``step()``, and no gradient hook on its parameters (``register_hook``,
+    ``register_post_accumulate_grad_hook``: a graph differentiating with ``torch.autograd.grad`` would not run
+    them)."""
     if type(optimizer) not in TRACEABLE:
         return f"the {type(optimizer).__name__} optimizer steps only eagerly (compiled: torch's Adam and AdamW)"
+    if "step" in vars(optimizer) or inspect.unwrap(type(optimizer).step) is not _TORCH_STEPS[type(optimizer)]:
+        return f"{type(optimizer).__name__}.step was replaced (compiled: torch's own step)"
     if optimizer_step_hooks(optimizer) is not False or global_optimizer_hooks() is not False:
         return "an optimizer step hook runs only with an eager step()"
     if any(group.get("differentiable") for group in optimizer.param_groups):

@@ -25,6 +25,7 @@ import torch.nn.functional as F
 from conftest import DummyEnv
 from stable_baselines3.common.noise import NormalActionNoise
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
+from stable_baselines3.common.policies import ContinuousCritic
 from stable_baselines3.common.torch_layers import FlattenExtractor, create_mlp
 from stable_baselines3.td3.policies import Actor
 from torch import nn
@@ -586,6 +587,82 @@ def test_a_change_between_two_trainings_is_compiled_as_written(name, dynamo_grap
     assert_same_weights(compiled, eager)
     rounding, moved = max_difference(compiled, eager), max_difference(eager, run(False, change=False))
     assert rounding < 0.05 * moved, f"{name}: the change moves the weights by {moved:.2e}, the paths differ by {rounding:.2e}"
+
+
+def _patch(owner: Any, name: str, wrap: Callable[[Any], Any]) -> Callable[[], None]:
+    """``owner.name = wrap(owner.name)``; returns what puts it back."""
+    original = owner.__dict__[name]
+    setattr(owner, name, wrap(original))
+    return lambda: setattr(owner, name, original)
+
+
+class _HalfLinear(nn.Linear):
+    def forward(self, x: th.Tensor) -> th.Tensor:
+        return super().forward(x) * 0.5
+
+
+def _swap_first_critic_layer_class(model: TD3X) -> Callable[[], None]:
+    model.critic.qf0[0].__class__ = _HalfLinear
+    return lambda: None
+
+
+#: name: a change made on a class (or an object's class) after the first 10 updates; returns what undoes it
+CLASS_CHANGES: dict[str, Callable[[TD3X], Callable[[], None]]] = {
+    "td3x-hook-replaced-on-the-class": lambda model: _patch(
+        TD3X, "td_target", lambda f: lambda self, *args: f(self, *args) * 0.5
+    ),
+    "sb3-critic-forward-patched": lambda model: _patch(
+        ContinuousCritic, "forward", lambda f: lambda self, obs, act: tuple(q * 0.5 for q in f(self, obs, act))
+    ),
+    "torch-linear-forward-patched": lambda model: _patch(nn.Linear, "forward", lambda f: lambda self, x: f(self, x) * 0.5),
+    "a-layer-class-swapped": _swap_first_critic_layer_class,
+}
+
+
+@pytest.mark.parametrize("name", list(CLASS_CHANGES))
+def test_a_class_changed_between_two_trainings_is_compiled_as_written(name, dynamo_graphs_only):
+    """A method replaced on a class after the update was compiled (a hook of TD3X's, SB3's critic ``forward``,
+    torch's ``nn.Linear.forward``) or a module's class swapped: Dynamo does not guard on methods found on classes, so
+    the old graph ran on, silently. The update is compiled again and trains what the eager one trains."""
+
+    def run(compile_update: bool, change: bool = True) -> TD3X:
+        model = updates_after_collection(build(Case(), learning_starts=STEPS, compile_update=compile_update), STEPS, 10)
+        undo = CLASS_CHANGES[name](model) if change else (lambda: None)
+        try:
+            model.train(gradient_steps=10, batch_size=model.batch_size)
+        finally:
+            undo()
+        return model
+
+    compiled, eager = run(True), run(False)
+    assert compiled.update_path == "compiled" and compiled._updates_compiled == 18, compiled.update_reason
+    assert len(compiled._step_fn.recompiled) == 1, compiled._step_fn.recompiled
+    assert_same_weights(compiled, eager)
+    rounding, moved = max_difference(compiled, eager), max_difference(eager, run(False, change=False))
+    assert rounding < 0.05 * moved, f"{name}: the change moves the weights by {moved:.2e}, the paths differ by {rounding:.2e}"
+
+
+def test_a_replaced_optimizer_step_steps_the_update_aside(dynamo_graphs_only):
+    """``Adam.step`` replaced on the class: the compiled update, which runs torch's functional Adam, would not run it;
+    the update steps aside, saying so, and trains as the eager one."""
+
+    def twice(step: Callable[..., Any]) -> Callable[..., Any]:
+        return lambda self, closure=None: (step(self, closure), step(self, closure))[1]
+
+    def run(compile_update: bool, change: bool = True) -> TD3X:
+        model = updates_after_collection(build(Case(), learning_starts=STEPS, compile_update=compile_update), STEPS, 10)
+        undo = _patch(th.optim.Adam, "step", twice) if change else (lambda: None)
+        try:
+            model.train(gradient_steps=10, batch_size=model.batch_size)
+        finally:
+            undo()
+        return model
+
+    compiled, eager = run(True), run(False)
+    assert compiled.update_path == "eager" and "Adam.step was replaced" in compiled.update_reason, compiled.update_reason
+    assert "from update 11 on" in compiled.update_reason
+    assert_same_weights(compiled, eager)
+    assert max_difference(eager, run(False, change=False)) > 1e-3
 
 
 def test_a_parameter_that_never_has_a_gradient_leaves_the_update_compiled(dynamo_graphs_only):

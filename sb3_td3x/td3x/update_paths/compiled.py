@@ -12,6 +12,10 @@ optimizer other than Adam or AdamW...) stops the compilation before any of it ru
 written, and ``update_reason`` says why in one line. It never runs a different computation: a graph that is not the
 whole update is never used.
 
+A class the update reads that changes after it was compiled (``TD3X.td_target = my_td_target`` between two
+``train()`` calls, a network's class patched or swapped) is compiled again (:class:`_ClassesRead`): Dynamo guards on
+the objects it read, not on the methods it found on their classes.
+
 Whether to compile (``compile_update``; ``None``, auto, by default) is :func:`decide_compile`'s: a question about the
 machine and the run, never about the user's code (:func:`why_not_compile`).
 """
@@ -21,6 +25,7 @@ from __future__ import annotations
 import functools
 import itertools
 import logging
+import operator
 import types
 from collections.abc import Callable
 from typing import Any
@@ -140,12 +145,23 @@ class CompiledUpdate:
         self.copy_outputs = mode == "reduce-overhead"
         # A gradient_step of the user's own is compiled whole; TD3X's samples eagerly, then runs the compiled update.
         self.whole_step = bool(changed_hooks(model, ("gradient_step",)))
+        self.mode = mode
+        self.classes_read: _ClassesRead | None = None  # taken after each trace
+        self.recompiled: list[str] = []  # why the update was compiled again (a class changed), at most MAX_RECOMPILES
+        self._compiled = self._compile()
+
+    #: How many times a changed class compiles the update again before it steps aside (a class attribute that changes
+    #: at every step would compile it at every step).
+    MAX_RECOMPILES = 8
+
+    def _compile(self) -> dict[bool, Callable[[Any], Infos]]:
+        """One compiled function per value of update_actor (each holds one graph, so no guard fails at each call), each
+        with a code object of its own: a new pair starts with no graph (:meth:`__call__`, when a class changed)."""
         compile_ = functools.partial(
-            th.compile, fullgraph=True, backend=self.backend, mode=mode if self.backend == "inductor" else None,
+            th.compile, fullgraph=True, backend=self.backend, mode=self.mode if self.backend == "inductor" else None,
             options=self.options,
         )
-        # One compiled function per value of update_actor: each holds one graph, so no guard fails at each call.
-        self._compiled = {flag: compile_(_own_code(_step(model, flag, self.whole_step))) for flag in (False, True)}
+        return {flag: compile_(_own_code(_step(self.model, flag, self.whole_step))) for flag in (False, True)}
 
     def __call__(self, batch_size: int, update_actor: bool) -> Infos:
         model = self.model
@@ -158,7 +174,15 @@ class CompiledUpdate:
                 return model.gradient_step(batch_size, update_actor)  # a first step makes Adam's state
             if isinstance(why, str):
                 return self._step_aside(f"{why} (the {'critic' if optimizer is optimizers[0] else 'actor'}'s optimizer)", batch_size, update_actor)
+        if self.classes_read is not None and (changed := self.classes_read.changed()) is not None:
+            if len(self.recompiled) >= self.MAX_RECOMPILES:
+                why = f"{changed}, after {self.MAX_RECOMPILES} such changes each compiled again"
+                return self._step_aside(why, batch_size, update_actor)
+            self.recompiled.append(changed)
+            log.info("TD3X: %s since the update was compiled: compiling it again.", changed)
+            self._compiled, self.classes_read = self._compile(), None
         args = (batch_size,) if self.whole_step else (model.sample_batch(batch_size),)  # step 4
+        graphs = _graphs_made()
         try:
             with _CompileSettings():
                 infos = self._compiled[update_actor](*args)
@@ -169,6 +193,8 @@ class CompiledUpdate:
                 return self._eager(*args, update_actor)
             return self._step_aside(why_not_one_graph(error), *args, update_actor)
         model._updates_compiled += 1
+        if self.classes_read is None or _graphs_made() != graphs:  # traced now: from the classes as they are now
+            self.classes_read = _ClassesRead(model)
         if self.copy_outputs:
             return tuple({key: value.clone() for key, value in info.items()} for info in infos)  # type: ignore[return-value]
         return infos
@@ -219,6 +245,49 @@ def _own_code(fn: Callable[..., Any]) -> Callable[..., Any]:
 _UPDATES = itertools.count()
 
 
+def _graphs_made() -> int:
+    """How many graphs Dynamo has made in this process (one more after a trace)."""
+    return th._dynamo.utils.counters["stats"]["unique_graphs"]
+
+
+class _ClassesRead:
+    """The classes of what the update reads (the model, its policy and every module in it, the optimizers, the replay
+    buffer, with their bases), as the update was traced: the objects' classes, and what each class holds.
+
+    Dynamo guards on the objects the graph read and on their ``__dict__``, not on the methods it found on their classes
+    (https://github.com/pytorch/pytorch/issues/197860; a guard per inlined function cost 20% more guard time,
+    https://github.com/pytorch/pytorch/pull/126203): a hook replaced on the class (``TD3X.td_target = f``), SB3's
+    ``ContinuousCritic.forward`` or ``nn.Linear.forward`` patched, or a module's ``__class__`` swapped (which
+    ``use_recursive_dict_tags_for_guards`` does not check: :class:`_CompileSettings`) after the first compiled step
+    would leave the old graph running, silently. :meth:`changed` finds such a change, and the update is then traced
+    again, as written now."""
+
+    def __init__(self, model: Any):
+        objects: list[Any] = [model, model.critic.optimizer, model.actor.optimizer, model.replay_buffer]
+        stack = [model.policy]
+        while stack:  # the policy's modules (nn.Module.modules() walks them three times slower)
+            module = stack.pop()
+            objects.append(module)
+            stack.extend(child for child in module._modules.values() if child is not None)
+        self.types = [(obj, type(obj)) for obj in objects]
+        classes = dict.fromkeys(cls for obj in objects for cls in type(obj).__mro__)
+        classes.pop(object)
+        self.classes = [(cls, tuple(vars(cls).values())) for cls in classes]
+
+    def changed(self) -> str | None:
+        """What changed since the trace, in words, or ``None``. Identity, not equality (a class attribute may be an
+        array); the values are held, so that a replaced function's id cannot be reused."""
+        for obj, cls in self.types:
+            if type(obj) is not cls:
+                return f"a {cls.__qualname__}'s class was set to {type(obj).__qualname__}"
+        for cls, values in self.classes:
+            now = tuple(vars(cls).values())
+            if len(now) != len(values) or not all(map(operator.is_, now, values)):
+                names = [name for name, value in vars(cls).items() if not any(value is v for v in values)]
+                return f"{cls.__module__}.{cls.__qualname__} changed ({', '.join(names) or 'an attribute deleted'})"
+        return None
+
+
 class _CompileSettings:
     """Around each call (read when Dynamo traces and Inductor compiles, which any call may do): Dynamo traces
     ``torch.autograd.grad`` (:func:`~sb3_td3x.td3x.optim.minimize`) and guards on the modules' hooks (torch 2.13 skips
@@ -239,6 +308,9 @@ class _CompileSettings:
         return (
             (th._dynamo.config, "trace_autograd_ops", True),
             (th._dynamo.config, "skip_nnmodule_hook_guards", False),
+            # Guards skip a module's subtree while no dictionary in it changed (a third of the guards' time a step);
+            # what that leaves unchecked, a module's class, is _ClassesRead's.
+            (th._dynamo.config, "use_recursive_dict_tags_for_guards", True),
             (inductor_config, "fallback_random", True),
             # What torch.compiler.assume_constant_result sets, for the length of the call only.
             (preprocessing.is_image_space, "_dynamo_marked_constant", True),
