@@ -506,6 +506,7 @@ def test_the_stock_setups_compile_and_match_the_hooks(name, dynamo_graphs_only):
     compiled = train_updates(STOCK[name], updates=20, compile_update=True)
     eager = train_updates(STOCK[name], updates=20, compile_update=False)
     assert compiled.update_path == "compiled" and eager.update_path == "eager"
+    assert compiled._step_fn.recompiled == []  # no class changed: compiled once
     assert_same_weights(compiled, eager)
     model = train(STOCK[name])
     assert model.exploration_path == "actor"
@@ -584,6 +585,7 @@ def test_a_change_between_two_trainings_is_compiled_as_written(name, dynamo_grap
     # parameters without state (a group added, a new layer, a new optimizer)
     new_state = name in ("param-group-added", "layer-replaced-as-a-new-module", "critic-optimizer-replaced")
     assert compiled._updates_compiled == 18 - new_state, f"{compiled._updates_compiled} of 20 updates ran compiled"
+    assert compiled._step_fn.recompiled == []  # Dynamo's guards see these changes; no class changed
     assert_same_weights(compiled, eager)
     rounding, moved = max_difference(compiled, eager), max_difference(eager, run(False, change=False))
     assert rounding < 0.05 * moved, f"{name}: the change moves the weights by {moved:.2e}, the paths differ by {rounding:.2e}"
