@@ -604,7 +604,7 @@ class _HalfLinear(nn.Linear):
 
 
 def _swap_first_critic_layer_class(model: TD3X) -> Callable[[], None]:
-    model.critic.qf0[0].__class__ = _HalfLinear
+    model.critic.qf0[0].__class__ = _HalfLinear  # Dynamo's guard on the module's class sees this one itself
     return lambda: None
 
 
@@ -624,8 +624,9 @@ CLASS_CHANGES: dict[str, Callable[[TD3X], Callable[[], None]]] = {
 @pytest.mark.parametrize("name", list(CLASS_CHANGES))
 def test_a_class_changed_between_two_trainings_is_compiled_as_written(name, dynamo_graphs_only):
     """A method replaced on a class after the update was compiled (a hook of TD3X's, SB3's critic ``forward``,
-    torch's ``nn.Linear.forward``) or a module's class swapped: Dynamo does not guard on methods found on classes, so
-    the old graph ran on, silently. The update is compiled again and trains what the eager one trains."""
+    torch's ``nn.Linear.forward``): Dynamo does not guard on methods found on classes, so the old graph ran on,
+    silently. The update is compiled again and trains what the eager one trains; so it does after a module's class
+    is swapped (there Dynamo's own guard recompiles)."""
 
     def run(compile_update: bool, change: bool = True) -> TD3X:
         model = updates_after_collection(build(Case(), learning_starts=STEPS, compile_update=compile_update), STEPS, 10)
@@ -638,7 +639,7 @@ def test_a_class_changed_between_two_trainings_is_compiled_as_written(name, dyna
 
     compiled, eager = run(True), run(False)
     assert compiled.update_path == "compiled" and compiled._updates_compiled == 18, compiled.update_reason
-    assert len(compiled._step_fn.recompiled) == 1, compiled._step_fn.recompiled
+    assert len(compiled._step_fn.recompiled) == (name != "a-layer-class-swapped"), compiled._step_fn.recompiled
     assert_same_weights(compiled, eager)
     rounding, moved = max_difference(compiled, eager), max_difference(eager, run(False, change=False))
     assert rounding < 0.05 * moved, f"{name}: the change moves the weights by {moved:.2e}, the paths differ by {rounding:.2e}"
