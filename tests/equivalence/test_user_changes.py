@@ -564,22 +564,30 @@ BETWEEN_TRAININGS: dict[str, tuple[Callable[[TD3X], None] | None, Callable[[TD3X
 }
 
 
+def around_a_change(
+    change: Callable[[TD3X], Callable[[], None] | None] | None,
+    compile_update: bool,
+    before: Callable[[TD3X], None] | None = None,
+) -> TD3X:
+    """10 updates (:func:`updates_after_collection`), ``change`` (``None``: none), 10 more; what ``change`` returns, if
+    anything, undoes it after them (a class patched for this model only)."""
+    model = build(Case(after=before), learning_starts=STEPS, compile_update=compile_update)
+    model = updates_after_collection(model, STEPS, 10)
+    undo = change(model) if change is not None else None
+    try:
+        model.train(gradient_steps=10, batch_size=model.batch_size)
+    finally:
+        if undo is not None:
+            undo()
+    return model
+
+
 @pytest.mark.parametrize("name", list(BETWEEN_TRAININGS))
 def test_a_change_between_two_trainings_is_compiled_as_written(name, dynamo_graphs_only):
     """A change made between two ``train()`` calls reaches the compiled update (recompiled where it must be) as it
     reaches the eager one: 10 updates, the change, 10 more, compiled and eagerly from one seed."""
     before, between = BETWEEN_TRAININGS[name]
-
-    def run(compile_update: bool, change: bool = True) -> TD3X:
-        model = updates_after_collection(
-            build(Case(after=before), learning_starts=STEPS, compile_update=compile_update), STEPS, 10
-        )
-        if change:
-            between(model)
-        model.train(gradient_steps=10, batch_size=model.batch_size)
-        return model
-
-    compiled, eager = run(True), run(False)
+    compiled, eager = around_a_change(between, True, before), around_a_change(between, False, before)
     assert compiled.update_path == "compiled", compiled.update_reason
     # Eager: each optimizer's first step (it makes Adam's state), and the first after the change where it brings
     # parameters without state (a group added, a new layer, a new optimizer)
@@ -587,7 +595,7 @@ def test_a_change_between_two_trainings_is_compiled_as_written(name, dynamo_grap
     assert compiled._updates_compiled == 18 - new_state, f"{compiled._updates_compiled} of 20 updates ran compiled"
     assert compiled._step_fn.recompiled == []  # Dynamo's guards see these changes; no class changed
     assert_same_weights(compiled, eager)
-    rounding, moved = max_difference(compiled, eager), max_difference(eager, run(False, change=False))
+    rounding, moved = max_difference(compiled, eager), max_difference(eager, around_a_change(None, False, before))
     assert rounding < 0.05 * moved, f"{name}: the change moves the weights by {moved:.2e}, the paths differ by {rounding:.2e}"
 
 
@@ -627,21 +635,11 @@ def test_a_class_changed_between_two_trainings_is_compiled_as_written(name, dyna
     torch's ``nn.Linear.forward``): Dynamo does not guard on methods found on classes, so the old graph ran on,
     silently. The update is compiled again and trains what the eager one trains; so it does after a module's class
     is swapped (there Dynamo's own guard recompiles)."""
-
-    def run(compile_update: bool, change: bool = True) -> TD3X:
-        model = updates_after_collection(build(Case(), learning_starts=STEPS, compile_update=compile_update), STEPS, 10)
-        undo = CLASS_CHANGES[name](model) if change else (lambda: None)
-        try:
-            model.train(gradient_steps=10, batch_size=model.batch_size)
-        finally:
-            undo()
-        return model
-
-    compiled, eager = run(True), run(False)
+    compiled, eager = around_a_change(CLASS_CHANGES[name], True), around_a_change(CLASS_CHANGES[name], False)
     assert compiled.update_path == "compiled" and compiled._updates_compiled == 18, compiled.update_reason
     assert len(compiled._step_fn.recompiled) == (name != "a-layer-class-swapped"), compiled._step_fn.recompiled
     assert_same_weights(compiled, eager)
-    rounding, moved = max_difference(compiled, eager), max_difference(eager, run(False, change=False))
+    rounding, moved = max_difference(compiled, eager), max_difference(eager, around_a_change(None, False))
     assert rounding < 0.05 * moved, f"{name}: the change moves the weights by {moved:.2e}, the paths differ by {rounding:.2e}"
 
 
@@ -652,20 +650,14 @@ def test_a_replaced_optimizer_step_steps_the_update_aside(dynamo_graphs_only):
     def twice(step: Callable[..., Any]) -> Callable[..., Any]:
         return lambda self, closure=None: (step(self, closure), step(self, closure))[1]
 
-    def run(compile_update: bool, change: bool = True) -> TD3X:
-        model = updates_after_collection(build(Case(), learning_starts=STEPS, compile_update=compile_update), STEPS, 10)
-        undo = _patch(th.optim.Adam, "step", twice) if change else (lambda: None)
-        try:
-            model.train(gradient_steps=10, batch_size=model.batch_size)
-        finally:
-            undo()
-        return model
+    def step_twice(model: TD3X) -> Callable[[], None]:
+        return _patch(th.optim.Adam, "step", twice)
 
-    compiled, eager = run(True), run(False)
+    compiled, eager = around_a_change(step_twice, True), around_a_change(step_twice, False)
     assert compiled.update_path == "eager" and "Adam.step was replaced" in compiled.update_reason, compiled.update_reason
     assert "from update 11 on" in compiled.update_reason
     assert_same_weights(compiled, eager)
-    assert max_difference(eager, run(False, change=False)) > 1e-3
+    assert max_difference(eager, around_a_change(None, False)) > 1e-3
 
 
 def test_a_parameter_that_never_has_a_gradient_leaves_the_update_compiled(dynamo_graphs_only):

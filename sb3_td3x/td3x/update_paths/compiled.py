@@ -25,7 +25,6 @@ from __future__ import annotations
 import functools
 import itertools
 import logging
-import operator
 import types
 from collections.abc import Callable
 from typing import Any
@@ -173,7 +172,8 @@ class CompiledUpdate:
             if (why := getattr(optimizer, PREPARED)) == NO_STATE:  # SGD without momentum says what it is, never this
                 return model.gradient_step(batch_size, update_actor)  # a first step makes Adam's state
             if isinstance(why, str):
-                return self._step_aside(f"{why} (the {'critic' if optimizer is optimizers[0] else 'actor'}'s optimizer)", batch_size, update_actor)
+                whose = "critic" if optimizer is optimizers[0] else "actor"
+                return self._step_aside(f"{why} (the {whose}'s optimizer)", batch_size, update_actor)
         if self.classes_read is not None and (changed := self.classes_read.changed()) is not None:
             if len(self.recompiled) >= self.MAX_RECOMPILES:
                 why = f"{changed}, after {self.MAX_RECOMPILES} such changes each compiled again"
@@ -263,12 +263,7 @@ class _ClassesRead:
     call). It holds classes, not the objects (a replaced replay buffer must not stay in memory through it)."""
 
     def __init__(self, model: Any):
-        objects: list[Any] = [model, model.critic.optimizer, model.actor.optimizer, model.replay_buffer]
-        stack = [model.policy]
-        while stack:  # the policy's modules (nn.Module.modules() walks them three times slower)
-            module = stack.pop()
-            objects.append(module)
-            stack.extend(child for child in module._modules.values() if child is not None)
+        objects = [model, model.critic.optimizer, model.actor.optimizer, model.replay_buffer, *model.policy.modules()]
         classes = dict.fromkeys(cls for obj in objects for cls in type(obj).__mro__)
         classes.pop(object)
         # Each class's namespace (a live view) and what it held: the values are held, so no id is reused.
