@@ -2,7 +2,9 @@
 :func:`gradients` with :func:`apply_gradients`, for a step that changes the gradients in between).
 
 Eagerly, ``minimize(optimizer, loss)`` is what SB3's TD3 does: ``zero_grad``, ``loss.backward()``, ``step()``, the
-backward pass reaching the optimizer's own parameters only (so the actor's loss leaves the critics without gradient).
+backward pass reaching the optimizer's own parameters only (so the actor's loss leaves the critics without gradient);
+before a fused optimizer's ``step()``, the gradients and moments are laid out in memory as their parameters
+(:func:`_step`: torch's fused CPU kernel computes wrong steps otherwise).
 
 Inside ``torch.compile`` (:mod:`~sb3_td3x.td3x.update_paths.compiled`), the same call is written so that the forward
 pass, the backward pass and the optimizer step trace into one graph: the gradients come from
