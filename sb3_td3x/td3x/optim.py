@@ -120,11 +120,12 @@ def _step(optimizer: th.optim.Optimizer) -> None:
     torch 2.13's fused kernel on a CPU walks a parameter, its gradient and its two moments through memory side by side
     and silently computes wrong values where their layouts differ (on a GPU torch refuses them with an error, issue
     106951 of pytorch/pytorch): a network moved to ``channels_last`` after the first step (its moments keep the old
-    layout; 0.03 off after one step), a gradient set by hand in another layout. Such a gradient or moment is copied into the parameter's layout, which
-    changes no value. A parameter that is not one dense block of memory (a slice of a larger tensor) has no layout a
-    copy can match: its group then steps with torch's for-loop implementation from then on, with a warning. Any fused
-    optimizer (SGD's too) is treated so. The check costs 1 to 3 us a parameter (about 30 us for a critic's 12 tensors on a
-    Zen 3 EPYC, where its fused Adam step takes 300 to 440 us and torch's for-loop one 1,400 to 2,100)."""
+    layout; 0.03 off after one step), a gradient set by hand in another layout. Such a gradient or moment is copied
+    into the parameter's layout, which changes no value. A parameter that is not one dense block of memory (a slice of
+    a larger tensor) has no layout a copy can match: its group then steps with torch's for-loop implementation from
+    then on, with a warning. Any fused optimizer (SGD's too) is treated so. The check costs 1 to 3 us a parameter
+    (about 30 us for a critic's 12 tensors on a Zen 3 EPYC, where its fused Adam step takes 300 to 440 us and torch's
+    for-loop one 1,400 to 2,100)."""
     for group in optimizer.param_groups:
         if group.get("fused"):
             _lay_out_as_params(optimizer, group)
