@@ -245,7 +245,9 @@ def _group(optimizer: th.optim.Optimizer, group: dict[str, Any], old: _Group | N
         and options == old.options
         and len(params) == len(old.params)
         and all(p is q for p, q in zip(params, old.params))
-        and all(st.get("exp_avg") is m and st.get("step") is n for st, m, n in zip(states, old.exp_avgs, old.steps))
+        and all(st.get("exp_avg") is m and st.get("exp_avg_sq") is v and st.get("step") is n
+                for st, m, v, n in zip(states, old.exp_avgs, old.exp_avg_sqs, old.steps))
+        and (not group["amsgrad"] or all(st.get("max_exp_avg_sq") is a for st, a in zip(states, old.max_exp_avg_sqs)))
     )
     if same:
         if lr != old.lr_value:

@@ -549,6 +549,12 @@ def _targets_loaded(model: TD3X) -> None:
             p.mul_(0.5)
 
 
+def _second_moments_replaced(model: TD3X) -> None:
+    """Adam's second moments of the critics given as new tensors (rescaled), the first moments and step counts kept."""
+    for state in model.critic.optimizer.state.values():
+        state["exp_avg_sq"] = state["exp_avg_sq"] * 100.0
+
+
 def _new_critic_optimizer(model: TD3X) -> None:
     model.critic.optimizer = th.optim.Adam(model.critic.parameters(), lr=5e-3)
 
@@ -560,6 +566,7 @@ BETWEEN_TRAININGS: dict[str, tuple[Callable[[TD3X], None] | None, Callable[[TD3X
     "gamma-tau-and-policy_delay-set": (None, _set(gamma=0.5, tau=0.3, policy_delay=3)),
     "adam-betas-and-weight-decay-set": (None, _adam_betas_and_weight_decay),
     "targets-loaded": (None, _targets_loaded),
+    "adam-second-moments-replaced": (None, _second_moments_replaced),
     "critic-optimizer-replaced": (None, _new_critic_optimizer),
 }
 
