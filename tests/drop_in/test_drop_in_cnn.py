@@ -126,3 +126,31 @@ def test_channel_first_env(tmp_path):
     model.save(tmp_path / "cnn_model.zip")
     model = TD3X.load(tmp_path / "cnn_model.zip", env=env)
     np.testing.assert_allclose(action, model.predict(obs, deterministic=True)[0])
+
+
+def test_a_cnn_moved_to_channels_last_mid_run_steps_as_torch_s_for_loop_adam():
+    """A CnnPolicy moved to ``channels_last`` after training began (its Adam moments keep the old layout): one
+    gradient step of TD3X's default optimizer (fused Adam) from the same weights, optimizer state and batch as one with
+    torch's for-loop Adam. torch 2.13's fused CPU kernel alone leaves the convolutions about 1e-3 off (sb3_td3x's
+    eager step lays the moments out as their parameters first: tests/unit/test_acceleration.py)."""
+    # deepcopy: an optimizer's state_dict() holds its state tensors themselves, which load_state_dict would share
+    models = [
+        TD3X("CnnPolicy", FakeImageEnv(screen_height=40, screen_width=40, n_channels=3, discrete=False), learning_starts=100,
+             seed=1, compile_update=False, **CNN_KWARGS).learn(110)
+        for _ in range(2)
+    ]  # fmt: skip
+    state = deepcopy(models[0].get_parameters())
+    batch = models[0].replay_buffer.sample(32)
+    for model, fused in zip(models, (True, False)):
+        model.set_parameters(deepcopy(state))
+        model.policy.to(memory_format=th.channels_last)
+        if not fused:
+            for optimizer in (model.actor.optimizer, model.critic.optimizer):
+                for group in optimizer.param_groups:
+                    group.update(fused=False, foreach=False)
+        model.sample_batch = lambda batch_size: batch
+        th.manual_seed(0)
+        model.train(gradient_steps=1, batch_size=32)
+    assert models[0].critic.features_extractor.cnn[0].weight.is_contiguous(memory_format=th.channels_last)
+    for (name, a), b in zip(models[0].policy.named_parameters(), models[1].policy.parameters()):
+        th.testing.assert_close(a, b, rtol=1e-5, atol=1e-6, msg=lambda m, name=name: f"{name}: {m}")
