@@ -240,26 +240,21 @@ def _group(optimizer: th.optim.Optimizer, group: dict[str, Any], old: _Group | N
         "decoupled_weight_decay": bool(group.get("decoupled_weight_decay", isinstance(optimizer, th.optim.AdamW))),
     }  # fmt: skip
     lr = float(group["lr"])
-    same = (
-        old is not None
-        and options == old.options
-        and len(params) == len(old.params)
-        and all(p is q for p, q in zip(params, old.params))
-        and all(st.get("exp_avg") is m and st.get("exp_avg_sq") is v and st.get("step") is n
-                for st, m, v, n in zip(states, old.exp_avgs, old.exp_avg_sqs, old.steps))
-        and (not group["amsgrad"] or all(st.get("max_exp_avg_sq") is a for st, a in zip(states, old.max_exp_avg_sqs)))
-    )
-    if same:
+    # Every tensor the graph reads of the group, compared by identity with what ``old`` holds: a state tensor given
+    # anew (Adam's second moments replaced, say) makes a new group, as a new parameter does.
+    tensors = (
+        params, [st.get("exp_avg") for st in states], [st.get("exp_avg_sq") for st in states],
+        [st.get("max_exp_avg_sq") for st in states] if group["amsgrad"] else [], [st.get("step") for st in states],
+    )  # fmt: skip
+    if old is not None and options == old.options and all(
+        len(new) == len(kept) and all(a is b for a, b in zip(new, kept))
+        for new, kept in zip(tensors, (old.params, old.exp_avgs, old.exp_avg_sqs, old.max_exp_avg_sqs, old.steps))
+    ):
         if lr != old.lr_value:
             old.lr.fill_(lr)
             old.lr_value = lr
-        return old  # type: ignore[return-value]
-    lr_tensor = th.full((), lr, device=params[0].device)
-    return _Group(
-        params, [st.get("exp_avg") for st in states], [st.get("exp_avg_sq") for st in states],
-        [st.get("max_exp_avg_sq") for st in states] if group["amsgrad"] else [], [st.get("step") for st in states],
-        lr_tensor, options, lr,
-    )  # fmt: skip
+        return old
+    return _Group(*tensors, th.full((), lr, device=params[0].device), options, lr)
 
 
 def has_state(optimizer: th.optim.Optimizer) -> bool:
