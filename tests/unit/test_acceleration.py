@@ -237,9 +237,9 @@ def test_the_eager_fused_adam_step_is_torch_s_for_loop_step_whatever_the_memory_
             optimizer = th.optim.Adam(params, lr=1e-2, **({"fused": True} if fused else {"foreach": False}))
         x = th.randn(5, 3, 8, 8)
         for k in range(3):
-            if k == 1 and change.startswith("channels_last"):
+            moved = k >= 1 and change.startswith("channels_last")
+            if k == 1 and moved:
                 net.to(memory_format=th.channels_last)
-            moved = k and change.startswith("channels_last")
             loss = net(x.contiguous(memory_format=th.channels_last) if moved else x).square().mean()
             if change == "gradient_transposed":
                 grads = [g.mT.contiguous().mT if g.dim() == 2 else g for g in gradients(optimizer, loss)]
