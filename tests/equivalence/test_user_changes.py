@@ -227,6 +227,19 @@ class DroQCriticsTD3X(TD3X):
         return nn.Sequential(*layers, nn.Linear(input_dim, 1))
 
 
+class BatchNormCriticsTD3X(TD3X):
+    """Critics with batch normalisation after each hidden layer (CrossQ's layout: no bias before it, which the
+    normalisation would cancel), through the network hook: running statistics updated inside the update by each
+    critic pass in train mode, and copied to the target critics by update_critic_target."""
+
+    def q_network(self, input_dim, net_arch, activation_fn):
+        layers: list[nn.Module] = []
+        for width in net_arch:
+            layers += [nn.Linear(input_dim, width, bias=False), nn.BatchNorm1d(width), activation_fn()]
+            input_dim = width
+        return nn.Sequential(*layers, nn.Linear(input_dim, 1))
+
+
 class AnnealedNoiseTD3X(TD3X):
     """Target policy smoothing noise annealed with the updates done: a Python value that changes at every step."""
 
@@ -288,6 +301,10 @@ CASES: dict[str, Case] = {
     "custom-autograd-function-in-the-critic": Case(kwargs={"policy": GradientScaledCriticPolicy}),
     "noise-annealed-with-the-updates": Case(cls=AnnealedNoiseTD3X),
     "dropout-and-layernorm-critics": Case(cls=DroQCriticsTD3X),  # the masks drawn in the graph as eagerly
+    "batchnorm-critics": Case(cls=BatchNormCriticsTD3X),  # buffers written by the graph: compared too (weights())
+    # AMSGrad's running maximum of the second moments, a state tensor of its own; betas of (0.9, 0.9) let the second
+    # moments fall within the 20 updates, so that the maximum changes the steps (3e-3 apart from Adam's)
+    "adam-amsgrad": Case(kwargs={"policy_kwargs": {"optimizer_kwargs": {"amsgrad": True, "betas": (0.9, 0.9)}}}),
     "frozen-actor-layer": Case(after=_frozen_actor_layer),
     "weight-norm-parametrization": Case(after=_weight_norm_on_critic),
     "policy-_predict-overridden": Case(kwargs={"policy": OffsetPredictPolicy}),
@@ -362,12 +379,13 @@ def train_updates(case: Case, updates: int = 100, **overrides: Any) -> TD3X:
 
 
 def weights(model: TD3X) -> list[th.Tensor]:
-    return [p.detach().clone() for p in model.policy.parameters()]
+    """The parameters, then the buffers (a batch normalisation's running statistics)."""
+    return [t.detach().clone() for t in (*model.policy.parameters(), *model.policy.buffers())]
 
 
 def assert_same_weights(model: TD3X, reference: TD3X, rtol: float = 1e-4, atol: float = 1e-5) -> None:
     for i, (a, b) in enumerate(zip(weights(model), weights(reference))):
-        th.testing.assert_close(a, b, rtol=rtol, atol=atol, msg=lambda m, i=i: f"parameter {i}: {m}")
+        th.testing.assert_close(a, b, rtol=rtol, atol=atol, msg=lambda m, i=i: f"tensor {i} (the parameters, then the buffers): {m}")
 
 
 def max_difference(model: TD3X, reference: TD3X) -> float:
