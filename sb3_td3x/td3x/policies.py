@@ -7,6 +7,7 @@ from collections.abc import Callable, Iterator
 from contextvars import ContextVar
 from typing import Any
 
+import numpy as np
 import torch as th
 from stable_baselines3.common.policies import ContinuousCritic
 from stable_baselines3.common.preprocessing import get_action_dim
@@ -55,6 +56,12 @@ class TD3XPolicy(TD3Policy):
     critic_target: TD3XCritic
 
     def __init__(self, *args: Any, **kwargs: Any):
+        n_critics = kwargs.get("n_critics", 2)
+        if not isinstance(n_critics, (int, np.integer)) or isinstance(n_critics, bool) or n_critics < 1:
+            raise ValueError(
+                f"TD3X: invalid policy_kwargs n_critics={n_critics!r}; n_critics must be an integer >= 1 (TD3's clipped "
+                "double Q takes the minimum over 2, the default)."
+            )
         optimizer_class = kwargs.get("optimizer_class", th.optim.Adam)
         optimizer_kwargs = dict(kwargs.get("optimizer_kwargs") or {})
         if optimizer_class in (th.optim.Adam, th.optim.AdamW) and not {"fused", "foreach"} & optimizer_kwargs.keys():

@@ -291,7 +291,15 @@ class TD3X(OffPolicyAlgorithm):
             return number(x) and math.isfinite(x) and x >= 0
 
         def switch(x: Any) -> bool:
-            return x is None or isinstance(x, (bool, np.bool_))
+            return x is None or flag(x)
+
+        def flag(x: Any) -> bool:  # a string such as "False" would be taken as true
+            return isinstance(x, (bool, np.bool_))
+
+        def frequency(x: Any) -> bool:  # SB3's forms: n, (n, "step" or "episode"), or its TrainFreq (a named tuple)
+            if not isinstance(x, tuple):
+                return integer(x, 1)
+            return len(x) == 2 and integer(x[0], 1) and str(getattr(x[1], "value", x[1])) in ("step", "episode")
 
         schedule = "a positive finite float or a schedule (a callable of the progress remaining)"
         noise = "a finite float >= 0 (use target_policy_smoothing=False to switch smoothing off)"
@@ -303,12 +311,18 @@ class TD3X(OffPolicyAlgorithm):
             ("batch_size", lambda x: integer(x, 1), "an integer >= 1"),
             ("tau", fraction, "a float in [0, 1]"),
             ("gamma", fraction, "a float in [0, 1]"),
+            ("train_freq", frequency, "an integer >= 1, or (n, 'step') or (n, 'episode') with n >= 1"),
             ("gradient_steps", lambda x: integer(x, -1),
              "an integer >= 0, or -1 (as many gradient steps as environment steps)"),
             ("n_steps", lambda x: integer(x, 1), "an integer >= 1"),
             ("policy_delay", lambda x: integer(x, 1), "an integer >= 1 (1 updates the actor at every gradient step)"),
             ("target_policy_noise", non_negative, noise),
             ("target_noise_clip", non_negative, noise),
+            ("optimize_memory_usage", flag, "True or False"),
+            ("target_policy_smoothing", flag, "True or False"),
+            ("clipped_double_q", flag, "True or False"),
+            ("bf16", flag, "True or False (True: the update's forward passes under bf16 autocast)"),
+            ("flush_denormals", flag, "True or False"),
             ("compile_update", switch, "None (auto: compiled on a long run, on a CPU or in CUDA graphs), True or False"),
             ("cuda_graph", switch, "None (auto: a GPU's compiled update in CUDA graphs), True or False"),
         )

@@ -26,6 +26,16 @@ from sb3_td3x import DDPG, TD3X
         (dict(buffer_size=0), "buffer_size"),
         (dict(learning_starts=-5), "learning_starts"),
         (dict(gradient_steps=-2), "gradient_steps"),
+        # A switch given as a string is refused: "False" is a true value, so clipped_double_q="False" would keep it on.
+        (dict(clipped_double_q="False"), "clipped_double_q"),
+        (dict(target_policy_smoothing="no"), "target_policy_smoothing"),
+        (dict(bf16="no"), "bf16"),
+        (dict(flush_denormals=None), "flush_denormals"),
+        (dict(optimize_memory_usage="False"), "optimize_memory_usage"),
+        (dict(policy_kwargs=dict(n_critics=0)), "n_critics"),
+        (dict(policy_kwargs=dict(n_critics=2.0)), "n_critics"),
+        (dict(train_freq=0), "train_freq"),
+        (dict(train_freq=(1, "steps")), "train_freq"),
     ],
 )
 def test_bad_hyperparameters_raise_value_error(kwargs, message):
@@ -55,6 +65,7 @@ def test_ddpg_validates_too():
 
 
 @pytest.mark.parametrize("kwargs", [dict(tau=0.0), dict(tau=1.0), dict(gamma=0.0), dict(gamma=1.0), dict(policy_delay=1),
-                                    dict(target_policy_noise=0.0, target_noise_clip=0.0), dict(gradient_steps=-1)])
+                                    dict(target_policy_noise=0.0, target_noise_clip=0.0), dict(gradient_steps=-1),
+                                    dict(train_freq=(2, "episode")), dict(train_freq=(3, "step"))])
 def test_edge_values_are_accepted(kwargs):
     TD3X("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(net_arch=[8]), **kwargs)

@@ -124,7 +124,6 @@ def check_config(cfg: DictConfig, on_this_machine: bool = True) -> None:
     # The constructor's own range checks (TD3X.hyperparameter_problems): one source of truth for both.
     for name, allowed in TD3X.hyperparameter_problems(**{name: algo[name] for name in constructor_fields()}):
         problems.append(f"algo.{name}={algo[name]} must be {allowed}")
-    need(algo.train_freq >= 1, f"algo.train_freq={algo.train_freq} must be >= 1")
     need(
         algo.train_freq_unit in ("step", "episode"),
         f"algo.train_freq_unit={algo.train_freq_unit!r} must be 'step' or 'episode'",
