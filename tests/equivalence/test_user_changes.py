@@ -228,9 +228,9 @@ class DroQCriticsTD3X(TD3X):
 
 
 class BatchNormCriticsTD3X(TD3X):
-    """Critics with batch normalisation after each hidden layer (CrossQ's layout: no bias before it, which the
-    normalisation would cancel), through the network hook: running statistics updated inside the update by each
-    critic pass in train mode, and copied to the target critics by update_critic_target."""
+    """Critics with batch normalisation after each hidden layer (no bias before it, which the normalisation would
+    cancel: docs/extending.md), through the network hook: running statistics updated inside the update by each critic
+    pass in train mode, and copied to the target critics by update_critic_target."""
 
     def q_network(self, input_dim, net_arch, activation_fn):
         layers: list[nn.Module] = []
