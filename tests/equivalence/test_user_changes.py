@@ -385,7 +385,9 @@ def weights(model: TD3X) -> list[th.Tensor]:
 
 def assert_same_weights(model: TD3X, reference: TD3X, rtol: float = 1e-4, atol: float = 1e-5) -> None:
     for i, (a, b) in enumerate(zip(weights(model), weights(reference))):
-        th.testing.assert_close(a, b, rtol=rtol, atol=atol, msg=lambda m, i=i: f"tensor {i} (the parameters, then the buffers): {m}")
+        th.testing.assert_close(
+            a, b, rtol=rtol, atol=atol, msg=lambda m, i=i: f"tensor {i} (the parameters, then the buffers): {m}"
+        )
 
 
 def max_difference(model: TD3X, reference: TD3X) -> float:
