@@ -12,6 +12,8 @@ root=$(cd "$(dirname "$0")/.." && pwd)
 src=$(realpath -m "${1:-$root/runs/results}")  # paths given by the caller are relative to the caller's folder
 dst=$(realpath -m "${RESULTS_DOCS_DIR:-$root/docs/assets/results}")
 cd "$root"
+# The project's venv where there is one and PYTHON does not name an interpreter (as scripts/test.sh does).
+[ -z "${PYTHON:-}" ] && [ -f .venv/bin/activate ] && . .venv/bin/activate
 python=${PYTHON:-python}
 [[ -d $src ]] || { echo "error: no folder $src; make the runs first with scripts/results.sh" >&2; exit 2; }
 

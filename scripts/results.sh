@@ -11,6 +11,8 @@
 # SIGINT, so xargs would go on to the next run): each run checkpoints on SIGINT/SIGTERM before it exits.
 set -uo pipefail
 cd "$(dirname "$0")/.."
+# The project's venv where there is one and PYTHON does not name an interpreter (as scripts/test.sh does).
+[ -z "${PYTHON:-}" ] && [ -f .venv/bin/activate ] && . .venv/bin/activate
 steps=${1:?usage: bash scripts/results.sh STEPS env:algo:seed [env:algo:seed ...]}
 shift
 [[ $steps =~ ^[0-9]+$ ]] || { echo "error: STEPS must be a whole number of environment steps, got '$steps'" >&2; exit 2; }

@@ -19,11 +19,18 @@ REPO = Path(__file__).resolve().parents[2]
 def results_sh(tmp_path: Path, *args: str) -> subprocess.CompletedProcess:
     env = {
         **os.environ,
-        "PYTHON": sys.executable,
         "JOBS": "2",
         "RESULTS_DIR": str(tmp_path / "runs"),
         "RUN_OVERRIDES": "debug=smoke eval.freq=300 logger=none",
     }
+    venv = REPO / ".venv"
+    if (venv / "bin" / "activate").exists():
+        # As from a new shell: no interpreter named and the venv off PATH; the script activates the project's venv.
+        env["PATH"] = os.pathsep.join(p for p in env["PATH"].split(os.pathsep) if not p.startswith(str(venv)))
+        env.pop("VIRTUAL_ENV", None)
+        env.pop("PYTHON", None)
+    else:
+        env["PYTHON"] = sys.executable
     return subprocess.run(
         ["bash", str(REPO / "scripts" / "results.sh"), *args], cwd=REPO, env=env, capture_output=True, text=True, timeout=600
     )
