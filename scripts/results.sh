@@ -58,7 +58,11 @@ PY
       checkpoint.freq=25000 run_dir="$dir" progress_bar=false >>"$dir/stdout.log" 2>&1
   fi
   local rc=$?
-  echo "exit $rc: $dir"
+  if [[ $rc -eq 0 ]]; then
+    echo "exit 0: $dir"
+  else  # run.py ends a failure with its reason in one paragraph: the last line of its output
+    echo "exit $rc: $dir: $(tail -n 1 "$dir/stdout.log") (the whole output: $dir/stdout.log)"
+  fi
   return $rc
 }
 export -f one

@@ -91,6 +91,9 @@ def test_bad_arguments_are_refused_with_a_message(tmp_path):
     job = results_sh(tmp_path, "600", "pendulum-td3-0")
     assert job.returncode != 0 and "is not env:algo:seed" in job.stderr
     assert not (tmp_path / "runs").exists() or not any((tmp_path / "runs").rglob("evaluations.csv"))
+    # A run that fails says why on the script's own output (run.py's last line), not only "exit 2".
+    failed = results_sh(tmp_path, "600", "pendulum:no_such_algo:0")
+    assert failed.returncode != 0 and "there is no config 'no_such_algo'" in failed.stdout, failed.stdout
 
 
 def test_publish_copies_the_records_and_aggregates_them(tmp_path, hopper_runs):
