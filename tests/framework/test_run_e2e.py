@@ -179,6 +179,24 @@ def test_run_experiment_reports_every_evaluation_and_returns_the_final_one(tmp_p
     assert not (tmp_path / "tb").exists()  # logger=none
 
 
+def test_summary_json_names_the_code_the_session_started_with(tmp_path, monkeypatch):
+    """A commit made while a run trains (a long results run, the repository worked on beside it) must not be credited
+    with the run: summary.json repeats the provenance taken when the session started, as provenance.jsonl has it."""
+    from sb3_td3x.experiment.run import train
+
+    real, calls = train.provenance, []
+
+    def provenance_then_a_commit():
+        calls.append(1)
+        return {**real(), "commit": ("a" if len(calls) == 1 else "b") * 40}
+
+    monkeypatch.setattr(train, "provenance", provenance_then_a_commit)
+    run_experiment(compose_config(SMOKE + ["logger=none", f"run_dir={tmp_path}"]))
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    started = json.loads((tmp_path / "provenance.jsonl").read_text().splitlines()[-1])
+    assert summary["provenance"]["commit"] == started["commit"] == "a" * 40
+
+
 class Pruned(Exception):
     pass
 

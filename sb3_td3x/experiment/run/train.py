@@ -74,6 +74,9 @@ class Run:
     #: How the update ran in the sessions before this one (from the checkpoint resumed), oldest first.
     earlier_sessions: list[dict[str, Any]] = field(default_factory=list)
     session_start: int = 0  # the step this session started at
+    #: Where this session's code came from, taken when it started (provenance.jsonl's line): summary.json repeats it,
+    #: so a commit made while the run trained is not credited with it.
+    provenance: dict[str, Any] = field(default_factory=dict)
 
     def update_sessions(self) -> list[dict[str, Any]]:
         """How the update ran in each session of the run, oldest first: the step it started at, its ``update_path``
@@ -107,7 +110,8 @@ def prepare(cfg: DictConfig, how: str) -> Run:
         run.closers.append(eval_env.close)
         experiment_state, session = _model(run, config, train_env)
         model = run.model
-        run.folder.start_session(config, model.num_timesteps, session, provenance())
+        run.provenance = provenance()
+        run.folder.start_session(config, model.num_timesteps, session, run.provenance)
         run.run_name = f"{cfg.env.name}_{cfg.algo.name}_seed{cfg.seed}"
         _loggers(run, config)
         _callbacks(run, eval_env, config, experiment_state)
@@ -231,7 +235,7 @@ def finish(run: Run) -> float:
         "update_sessions": run.update_sessions(),
         "exploration_path": getattr(model, "exploration_path", None),
         "wall_time_s_this_session": time.time() - run.started,
-        "provenance": provenance(),
+        "provenance": run.provenance,
     }
     if evaluation.value_notes:  # why value columns are NaN, and what to change (the log says it in one line)
         summary["value_measurement_notes"] = evaluation.value_notes
