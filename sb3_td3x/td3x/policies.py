@@ -45,6 +45,15 @@ class TD3XCritic(ContinuousCritic):
         return th.stack(self(obs, actions))
 
 
+#: What ``n_critics`` must be (:func:`valid_n_critics`), said by the policy and by the experiment configs' check.
+N_CRITICS = "an integer >= 1 (TD3's clipped double Q takes the minimum over 2, the default)"
+
+
+def valid_n_critics(n_critics: Any) -> bool:
+    """Whether ``n_critics`` (``policy_kwargs``, or an algo config's ``n_critics``) is :data:`N_CRITICS`."""
+    return isinstance(n_critics, (int, np.integer)) and not isinstance(n_critics, bool) and n_critics >= 1
+
+
 class TD3XPolicy(TD3Policy):
     """SB3's ``TD3Policy`` (actor, critics and their targets: steps 2 and 3) with :class:`TD3XCritic` critics.
 
@@ -57,11 +66,8 @@ class TD3XPolicy(TD3Policy):
 
     def __init__(self, *args: Any, **kwargs: Any):
         n_critics = kwargs.get("n_critics", 2)
-        if not isinstance(n_critics, (int, np.integer)) or isinstance(n_critics, bool) or n_critics < 1:
-            raise ValueError(
-                f"TD3X: invalid policy_kwargs n_critics={n_critics!r}; n_critics must be an integer >= 1 (TD3's clipped "
-                "double Q takes the minimum over 2, the default)."
-            )
+        if not valid_n_critics(n_critics):
+            raise ValueError(f"TD3X: invalid policy_kwargs n_critics={n_critics!r}; n_critics must be {N_CRITICS}.")
         optimizer_class = kwargs.get("optimizer_class", th.optim.Adam)
         optimizer_kwargs = dict(kwargs.get("optimizer_kwargs") or {})
         if optimizer_class in (th.optim.Adam, th.optim.AdamW) and not {"fused", "foreach"} & optimizer_kwargs.keys():

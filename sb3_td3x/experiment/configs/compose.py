@@ -34,6 +34,7 @@ from sb3_td3x.experiment.configs.schemas import (
     constructor_fields,
 )
 from sb3_td3x.experiment.errors import ConfigError
+from sb3_td3x.td3x.policies import N_CRITICS, valid_n_critics
 from sb3_td3x.td3x.td3x import TD3X
 
 
@@ -133,7 +134,7 @@ def check_config(cfg: DictConfig, on_this_machine: bool = True) -> None:
         algo.net_arch is None or (len(algo.net_arch) > 0 and min(algo.net_arch) >= 1),
         f"algo.net_arch={algo.net_arch} must list positive layer widths, or be null for the policy's default",
     )
-    need(algo.n_critics >= 1, f"algo.n_critics={algo.n_critics} must be >= 1")
+    need(valid_n_critics(algo.n_critics), f"algo.n_critics={algo.n_critics} must be {N_CRITICS}")
 
     problems += _env_id_problems(cfg.env.id)
     need(cfg.env.max_episode_steps is None or cfg.env.max_episode_steps >= 1, "env.max_episode_steps must be >= 1 or null")
