@@ -54,6 +54,26 @@ def valid_n_critics(n_critics: Any) -> bool:
     return isinstance(n_critics, (int, np.integer)) and not isinstance(n_critics, bool) and n_critics >= 1
 
 
+#: What ``net_arch`` must be (:func:`valid_net_arch`): a width of 0 would silently make a network that outputs its bias.
+NET_ARCH = (
+    "a list of layer widths, each an integer >= 1 (an empty list: no hidden layer), a dict of such lists under 'pi'"
+    " and 'qf', or None (the default, [400, 300])"
+)
+
+
+def valid_net_arch(net_arch: Any) -> bool:
+    """Whether ``net_arch`` (``policy_kwargs``, or an algo config's ``net_arch``) is :data:`NET_ARCH`."""
+
+    def widths(layers: Any) -> bool:
+        return isinstance(layers, (list, tuple)) and all(
+            isinstance(w, (int, np.integer)) and not isinstance(w, bool) and w >= 1 for w in layers
+        )
+
+    if isinstance(net_arch, dict):
+        return set(net_arch) == {"pi", "qf"} and all(widths(layers) for layers in net_arch.values())
+    return net_arch is None or widths(net_arch)
+
+
 class TD3XPolicy(TD3Policy):
     """SB3's ``TD3Policy`` (actor, critics and their targets: steps 2 and 3) with :class:`TD3XCritic` critics.
 
@@ -68,6 +88,9 @@ class TD3XPolicy(TD3Policy):
         n_critics = kwargs.get("n_critics", 2)
         if not valid_n_critics(n_critics):
             raise ValueError(f"TD3X: invalid policy_kwargs n_critics={n_critics!r}; n_critics must be {N_CRITICS}.")
+        net_arch = kwargs.get("net_arch", args[3] if len(args) > 3 else None)  # TD3Policy's fourth argument
+        if not valid_net_arch(net_arch):
+            raise ValueError(f"TD3X: invalid policy_kwargs net_arch={net_arch!r}; net_arch must be {NET_ARCH}.")
         optimizer_class = kwargs.get("optimizer_class", th.optim.Adam)
         optimizer_kwargs = dict(kwargs.get("optimizer_kwargs") or {})
         if optimizer_class in (th.optim.Adam, th.optim.AdamW) and not {"fused", "foreach"} & optimizer_kwargs.keys():

@@ -269,6 +269,12 @@ class TD3X(OffPolicyAlgorithm):
         if problems:
             name, allowed = problems[0]
             raise ValueError(f"TD3X: invalid {name}={values[name]!r}; {name} must be {allowed}.")
+        noise = values["action_noise"]  # an object (not in the configs' checks): SB3 would fail at learn()'s first step
+        if noise is not None and not (callable(noise) and callable(getattr(noise, "reset", None))):
+            raise ValueError(
+                f"TD3X: invalid action_noise={noise!r}; action_noise must be None or an ActionNoise such as "
+                "stable_baselines3.common.noise.NormalActionNoise(mean=np.zeros(n_actions), sigma=0.1 * np.ones(n_actions))."
+            )
 
     @staticmethod
     def hyperparameter_problems(**values: Any) -> list[tuple[str, str]]:

@@ -36,6 +36,13 @@ from sb3_td3x import DDPG, TD3X
         (dict(policy_kwargs=dict(n_critics=2.0)), "n_critics"),
         (dict(train_freq=0), "train_freq"),
         (dict(train_freq=(1, "steps")), "train_freq"),
+        # A layer of width 0 trains a network that outputs its last bias, whatever the input; SB3 accepts it.
+        (dict(policy_kwargs=dict(net_arch=[64, 0])), "net_arch"),
+        (dict(policy_kwargs=dict(net_arch=[-1])), "net_arch"),
+        (dict(policy_kwargs=dict(net_arch={"pi": [8]})), "net_arch"),  # SB3: a KeyError from inside the policy
+        # SB3 takes any object and fails at learn()'s first noisy action, with an AttributeError.
+        (dict(action_noise="normal"), "action_noise"),
+        (dict(action_noise=0.1), "action_noise"),
     ],
 )
 def test_bad_hyperparameters_raise_value_error(kwargs, message):
@@ -66,6 +73,21 @@ def test_ddpg_validates_too():
 
 @pytest.mark.parametrize("kwargs", [dict(tau=0.0), dict(tau=1.0), dict(gamma=0.0), dict(gamma=1.0), dict(policy_delay=1),
                                     dict(target_policy_noise=0.0, target_noise_clip=0.0), dict(gradient_steps=-1),
-                                    dict(train_freq=(2, "episode")), dict(train_freq=(3, "step"))])
+                                    dict(train_freq=(2, "episode")), dict(train_freq=(3, "step")),
+                                    dict(policy_kwargs=dict(net_arch=[])),
+                                    dict(policy_kwargs=dict(net_arch={"pi": [8], "qf": [16, 16]}))])
 def test_edge_values_are_accepted(kwargs):
-    TD3X("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(net_arch=[8]), **kwargs)
+    TD3X("MlpPolicy", "Pendulum-v1", **{"policy_kwargs": dict(net_arch=[8]), **kwargs})
+
+
+def test_a_noise_of_the_users_own_class_is_accepted_as_sb3_accepts_it():
+    """SB3 calls the noise and its ``reset()``; an object with both is a noise, whatever its class."""
+
+    class Constant:
+        def __call__(self):
+            return np.full(1, 0.3)
+
+        def reset(self):
+            pass
+
+    TD3X("MlpPolicy", "Pendulum-v1", action_noise=Constant(), learning_starts=0, policy_kwargs=dict(net_arch=[8])).learn(20)

@@ -34,7 +34,7 @@ from sb3_td3x.experiment.configs.schemas import (
     constructor_fields,
 )
 from sb3_td3x.experiment.errors import ConfigError
-from sb3_td3x.td3x.policies import N_CRITICS, valid_n_critics
+from sb3_td3x.td3x.policies import N_CRITICS, valid_n_critics, valid_net_arch
 from sb3_td3x.td3x.td3x import TD3X
 
 
@@ -131,7 +131,7 @@ def check_config(cfg: DictConfig, on_this_machine: bool = True) -> None:
     )
     need(algo.exploration_noise >= 0, f"algo.exploration_noise={algo.exploration_noise} must be >= 0")
     need(
-        algo.net_arch is None or (len(algo.net_arch) > 0 and min(algo.net_arch) >= 1),
+        algo.net_arch is None or (len(algo.net_arch) > 0 and valid_net_arch(list(algo.net_arch))),
         f"algo.net_arch={algo.net_arch} must list positive layer widths, or be null for the policy's default",
     )
     need(valid_n_critics(algo.n_critics), f"algo.n_critics={algo.n_critics} must be {N_CRITICS}")
