@@ -2,8 +2,9 @@
 of test_learning.py) within 6,000 steps (n-step returns: 3,500, learning from step 500), with 64-64 networks, on one
 seed.
 
-Short runs, so that the four stay near a minute together on 2 cores: seed 0 ends between -132 and -155 for each (AMD
-EPYC, 2026-11; random actions score about -1200). n-step returns learn sooner: seeds 0 and 1 reach -137 and -205 at
+Short runs: the four took 149 s together in one suite run and 438 s in another on the 2-core AMD EPYC Zen 3 (what
+runs beside them in the suite, SLURM's jobs say, changes their time threefold). Seed 0 ends between -132 and -155 for
+each (AMD EPYC, 2026-11; random actions score about -1200). n-step returns learn sooner: seeds 0 and 1 reach -137 and -205 at
 3,500 steps (-157 and -210 at 3,000); LAP and LayerNorm critics are still near -1000 at 4,000 steps, learning from 500.
 One seed shows that a variant learns, not that it learns better or worse than TD3: docs/variants.md says what the
 results pages can show. The variants' math is held to the papers' and authors' code by tests/unit/test_variants.py and
