@@ -56,7 +56,7 @@ def valid_n_critics(n_critics: Any) -> bool:
 
 #: What ``net_arch`` must be (:func:`valid_net_arch`): a width of 0 would silently make a network that outputs its bias.
 NET_ARCH = (
-    "a list of layer widths, each an integer >= 1 (an empty list: no hidden layer), a dict of such lists under 'pi'"
+    "a list of layer widths, each an integer >= 1 (an empty list: no hidden layer), a dict with such lists under 'pi'"
     " and 'qf', or None (the default, [400, 300])"
 )
 
@@ -69,9 +69,9 @@ def valid_net_arch(net_arch: Any) -> bool:
             isinstance(w, (int, np.integer)) and not isinstance(w, bool) and w >= 1 for w in layers
         )
 
-    if isinstance(net_arch, dict):
-        return set(net_arch) == {"pi", "qf"} and all(widths(layers) for layers in net_arch.values())
-    return net_arch is None or widths(net_arch)
+    if isinstance(net_arch, dict):  # other keys are the user's (a subclass may read them), as SB3 leaves them
+        return {"pi", "qf"} <= set(net_arch) and widths(net_arch["pi"]) and widths(net_arch["qf"])
+    return net_arch is None or (isinstance(net_arch, list) and widths(net_arch))  # SB3 takes a tuple as a dict
 
 
 class TD3XPolicy(TD3Policy):

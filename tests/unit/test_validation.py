@@ -39,7 +39,8 @@ from sb3_td3x import DDPG, TD3X
         # A layer of width 0 trains a network that outputs its last bias, whatever the input; SB3 accepts it.
         (dict(policy_kwargs=dict(net_arch=[64, 0])), "net_arch"),
         (dict(policy_kwargs=dict(net_arch=[-1])), "net_arch"),
-        (dict(policy_kwargs=dict(net_arch={"pi": [8]})), "net_arch"),  # SB3: a KeyError from inside the policy
+        (dict(policy_kwargs=dict(net_arch={"pi": [8]})), "net_arch"),  # SB3: an assertion error
+        (dict(policy_kwargs=dict(net_arch=(64, 64))), "net_arch"),  # SB3: a bare assertion
         # SB3 takes any object and fails at learn()'s first noisy action, with an AttributeError.
         (dict(action_noise="normal"), "action_noise"),
         (dict(action_noise=0.1), "action_noise"),
@@ -75,7 +76,8 @@ def test_ddpg_validates_too():
                                     dict(target_policy_noise=0.0, target_noise_clip=0.0), dict(gradient_steps=-1),
                                     dict(train_freq=(2, "episode")), dict(train_freq=(3, "step")),
                                     dict(policy_kwargs=dict(net_arch=[])),
-                                    dict(policy_kwargs=dict(net_arch={"pi": [8], "qf": [16, 16]}))])
+                                    dict(policy_kwargs=dict(net_arch={"pi": [8], "qf": [16, 16]})),
+                                    dict(policy_kwargs=dict(net_arch={"pi": [8], "qf": (16,), "users_key": 3}))])
 def test_edge_values_are_accepted(kwargs):
     TD3X("MlpPolicy", "Pendulum-v1", **{"policy_kwargs": dict(net_arch=[8]), **kwargs})
 
