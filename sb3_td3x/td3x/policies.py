@@ -49,9 +49,13 @@ class TD3XCritic(ContinuousCritic):
 N_CRITICS = "an integer >= 1 (TD3's clipped double Q takes the minimum over 2, the default)"
 
 
+def _positive_integer(x: Any) -> bool:
+    return isinstance(x, (int, np.integer)) and not isinstance(x, bool) and x >= 1
+
+
 def valid_n_critics(n_critics: Any) -> bool:
     """Whether ``n_critics`` (``policy_kwargs``, or an algo config's ``n_critics``) is :data:`N_CRITICS`."""
-    return isinstance(n_critics, (int, np.integer)) and not isinstance(n_critics, bool) and n_critics >= 1
+    return _positive_integer(n_critics)
 
 
 #: What ``net_arch`` must be (:func:`valid_net_arch`): a width of 0 would silently make a network that outputs its bias.
@@ -65,9 +69,7 @@ def valid_net_arch(net_arch: Any) -> bool:
     """Whether ``net_arch`` (``policy_kwargs``, or an algo config's ``net_arch``) is :data:`NET_ARCH`."""
 
     def widths(layers: Any) -> bool:
-        return isinstance(layers, (list, tuple)) and all(
-            isinstance(w, (int, np.integer)) and not isinstance(w, bool) and w >= 1 for w in layers
-        )
+        return isinstance(layers, (list, tuple)) and all(_positive_integer(width) for width in layers)
 
     if isinstance(net_arch, dict):  # other keys are the user's (a subclass may read them), as SB3 leaves them
         return {"pi", "qf"} <= set(net_arch) and widths(net_arch["pi"]) and widths(net_arch["qf"])

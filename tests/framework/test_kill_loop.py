@@ -15,7 +15,8 @@ REPO = Path(__file__).resolve().parents[2]
 @pytest.mark.slow
 def test_five_kills_end_as_the_run_never_killed(tmp_path):
     """Five kills (77 s and 130 s in two suite runs on the 2-core AMD EPYC Zen 3; twenty took 155 s in CI): each is a
-    start-up, a checkpoint load and a stretch of training or saving cut short. ``python scripts/kill_loop.py --kills 20`` runs more by hand."""
+    start-up, a checkpoint load and a stretch of training or saving cut short. ``python scripts/kill_loop.py --kills
+    20`` runs more by hand."""
     result = subprocess.run(
         [sys.executable, "scripts/kill_loop.py", "--kills", "5", "--work", str(tmp_path)],
         cwd=REPO,
