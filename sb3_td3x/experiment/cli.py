@@ -173,8 +173,17 @@ def _check_group_choice(conf_dir: Path, group: str, choice: object) -> None:
     close = difflib.get_close_matches(str(choice), options, n=1)
     hint = f" Did you mean {group}={close[0]}?" if close else ""
     raise ConfigError(
-        f"{group}={choice}: there is no config '{choice}' in {conf_dir / group}.{hint} The choices are: {', '.join(options)}."
+        f"{group}={choice}: there is no config '{choice}' in {_as_typed(conf_dir / group)}.{hint} The choices are: "
+        f"{', '.join(options)}."
     )
+
+
+def _as_typed(path: Path) -> str:
+    """``path`` relative to the folder run.py was started in, where it lies below it (``conf/env``), else whole."""
+    try:
+        return str(path.resolve().relative_to(Path.cwd().resolve()))
+    except ValueError:
+        return str(path)
 
 
 def main(cfg: DictConfig) -> float:

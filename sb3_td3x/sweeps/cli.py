@@ -8,10 +8,14 @@ import os
 import re
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from sb3_td3x.common.redaction import redact, redact_log_records
 from sb3_td3x.experiment import stops
 from sb3_td3x.sweeps.errors import SweepError
+
+if TYPE_CHECKING:
+    from sb3_td3x.sweeps.spec import SweepSpec
 
 logger = logging.getLogger("sb3_td3x.sweeps")
 
@@ -124,26 +128,38 @@ def check_arguments(args: argparse.Namespace) -> None:
         raise SweepError(f"--output-dir {args.output_dir} is a file; pass a folder for the study folders")
 
 
-def _run(args: argparse.Namespace) -> int:
-    import optuna
-
-    from sb3_td3x.sweeps.objective import DEFAULT_CONFIG_DIR, TrialObjective, check_composes
-    from sb3_td3x.sweeps.results import write_results
+def check_command(args: argparse.Namespace) -> tuple[SweepSpec, Path]:
+    """The sweep a command line runs and the config folder its trials compose from, checked before a storage is opened
+    or anything is written: the arguments, the sweep file, that a trial's overrides compose, ``--launcher``'s file."""
+    from sb3_td3x.sweeps.launch import load_launcher
+    from sb3_td3x.sweeps.objective import DEFAULT_CONFIG_DIR, check_composes
     from sb3_td3x.sweeps.spec import load_sweep
-    from sb3_td3x.sweeps.storage import default_storage_url, open_storage
-    from sb3_td3x.sweeps.worker import SweepInterrupted, check_heartbeat_settings, open_study, run_worker
 
     check_arguments(args)
     spec = load_sweep(args.sweep_file)
-    study_name = args.study_name or spec.study_name
-    n_trials = args.n_trials if args.n_trials is not None else spec.n_trials
-    study_dir = (args.output_dir / study_name).resolve()
     config_dir = (args.config_dir or DEFAULT_CONFIG_DIR).resolve()
     if not (config_dir / "config.yaml").is_file():
         raise SweepError(f"{config_dir} has no config.yaml; pass --config-dir pointing at the conf/ folder run.py uses")
+    check_composes(spec, config_dir, args.overrides)
+    if args.launcher is not None:
+        load_launcher(args.launcher, Path("jobs"), "sweep")  # read again by _launch, with the study's job folder
+    return spec, config_dir
+
+
+def _run(args: argparse.Namespace) -> int:
+    import optuna
+
+    from sb3_td3x.sweeps.objective import TrialObjective
+    from sb3_td3x.sweeps.results import write_results
+    from sb3_td3x.sweeps.storage import default_storage_url, open_storage
+    from sb3_td3x.sweeps.worker import SweepInterrupted, check_heartbeat_settings, open_study, run_worker
+
+    spec, config_dir = check_command(args)
+    study_name = args.study_name or spec.study_name
+    n_trials = args.n_trials if args.n_trials is not None else spec.n_trials
+    study_dir = (args.output_dir / study_name).resolve()
     storage_url = args.storage or spec.storage or default_storage_url(study_dir)
 
-    check_composes(spec, config_dir, args.overrides)
     if args.launcher is not None:
         return _launch(args, storage_url, study_dir, study_name, config_dir, spec.overrides)
 

@@ -259,6 +259,7 @@ BAD_INPUTS = {
     "seeds=[]": "seeds=[] must list distinct seeds",
     "algo.taau=0.1": "takes no argument 'taau'. Did you mean algo.tau?",
     "run_dir=<a file>": "is a file, not a folder",
+    "algo._target_=nosuchmodule.MyTD3": "cannot be imported",  # and Hydra's own log line of it not printed too
 }
 
 

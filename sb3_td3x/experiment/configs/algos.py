@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import difflib
 import inspect
+import logging
 import os
 from typing import Any
 
@@ -44,6 +45,9 @@ _SCHEMA_DEFAULTS = {name: default for name, (_, default) in constructor_fields(T
 
 def algorithm_class(algo_cfg: DictConfig) -> type[TD3X | TD3]:
     """The class named by ``algo._target_``: :class:`sb3_td3x.TD3X`, SB3's ``TD3``, or a subclass of either."""
+    hydra_log = logging.getLogger("hydra.utils")  # get_class logs its failure at ERROR, then raises it: said once below
+    level = hydra_log.level
+    hydra_log.setLevel(logging.CRITICAL)
     try:
         cls = get_class(algo_cfg._target_)
     except Exception as error:  # hydra wraps the ImportError/AttributeError in its own exception types
@@ -51,6 +55,8 @@ def algorithm_class(algo_cfg: DictConfig) -> type[TD3X | TD3]:
             f"algo._target_={algo_cfg._target_!r} cannot be imported ({error}). A class of your own goes in a module that "
             "Python finds: in the folder you start run.py from, or on PYTHONPATH."
         ) from None
+    finally:
+        hydra_log.setLevel(level)
     if not (isinstance(cls, type) and issubclass(cls, (TD3X, TD3))):
         raise ConfigError(
             f"algo._target_={algo_cfg._target_!r} is not sb3_td3x.TD3X, stable_baselines3.TD3 or a subclass of either."
