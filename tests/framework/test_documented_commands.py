@@ -47,6 +47,7 @@ class Shown:
 
 RUN_PY = ("python", "run.py")
 SWEEP = ("python", "-m", "sb3_td3x.sweeps")
+RESULTS = ("bash", "scripts/results.sh")
 
 
 def _arguments(text: str, program: tuple[str, ...]) -> tuple[str, ...] | None:
@@ -105,11 +106,13 @@ ACCEPTED = [c for c in COMMANDS if not c.output.startswith("Error:")]
 REFUSED = [c for c in COMMANDS if c.output.startswith("Error:")]
 #: The sweep's commands (the program named alone, in a sentence, and ``--help`` left out).
 SWEEPS = [c for c in documented_commands(SWEEP) if c.args and "--help" not in c.args]
+#: The commands that train the runs behind docs/results.md: STEPS, then env:algo:seed jobs.
+RESULTS_RUNS = documented_commands(RESULTS)
 
 
 def test_the_pages_show_commands():
     """The reading above finds what the pages hold (a change of their layout must not leave this test with nothing)."""
-    assert len(ACCEPTED) >= 30 and len(REFUSED) >= 4 and len(SWEEPS) >= 10, (len(ACCEPTED), len(REFUSED), len(SWEEPS))
+    assert len(ACCEPTED) >= 30 and len(REFUSED) >= 4 and len(SWEEPS) >= 10 and len(RESULTS_RUNS) >= 8
     assert {"README.md", "experiments.md", "cluster.md", "seeds.md", "sweeps.md", "variants.md"} <= {
         c.page for c in ACCEPTED
     }
@@ -161,3 +164,22 @@ def test_a_documented_sweep_command_is_one_the_sweep_accepts(command, tmp_path, 
     args = build_parser().parse_intermixed_args([*command.args, "--output-dir", str(tmp_path)])
     check_command(args)  # a refused command raises SweepError with its message
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("command", RESULTS_RUNS, ids=str)
+def test_a_documented_results_command_starts_runs_run_py_accepts(command, tmp_path):
+    """Each job (bash's brace expansion applied, as the shell does) as ``scripts/results.sh`` starts it: one seed of
+    each environment and algorithm (the seed changes nothing that is checked)."""
+    expanded = subprocess.run(
+        ["bash", "-c", 'printf "%s\\n" ' + " ".join(command.args)], check=True, capture_output=True, text=True
+    ).stdout.split()
+    steps, *jobs = expanded
+    assert steps.isdigit() and jobs and all(re.fullmatch(r"\w+:\w+:\d+", job) for job in jobs), expanded
+    first_seed = {tuple(job.split(":")[:2]): job.split(":")[2] for job in reversed(jobs)}
+    for (env, algo), seed in first_seed.items():
+        run_dir = tmp_path / env / algo / f"seed{seed}"
+        check_command_line(
+            [f"env={env}", f"algo={algo}", f"seed={seed}", "torch_threads=1", f"total_timesteps={steps}",
+             "checkpoint.freq=25000", f"run_dir={run_dir}", "progress_bar=false"],
+            CONF_DIR,
+        )
