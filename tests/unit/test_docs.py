@@ -2,7 +2,7 @@
 
 Builds the site once into a temporary folder (``mkdocs build --strict``), then checks every page of the nav, the
 rendered API reference, images and internal links; and runs the examples of docs/extending.md, which the page
-includes from docs/examples/, so that the code shown there keeps working.
+includes from docs/examples/, and the other pages' Python blocks, so that the code shown keeps working.
 """
 
 from __future__ import annotations
@@ -319,6 +319,31 @@ def test_example_trains_and_calls_its_override(path: Path, monkeypatch: pytest.M
     assert all(n > 0 for n in calls.values()), f"overrides not called during training: {calls}"
     for p in model.policy.parameters():
         assert th.isfinite(p).all()
+
+
+def page_python_blocks() -> list[tuple[str, int, str]]:
+    """The ``python`` code blocks of docs/'s pages as (page, line, code), less those that include a file of
+    docs/examples/ (run above)."""
+    blocks = []
+    for page in sorted(DOCS.glob("*.md")):
+        text = page.read_text(encoding="utf-8")
+        for match in re.finditer(r"^```python\n(.*?)^```", text, flags=re.DOTALL | re.MULTILINE):
+            if "--8<--" not in match.group(1):
+                blocks.append((page.name, text.count("\n", 0, match.start()) + 1, match.group(1)))
+    return blocks
+
+
+@pytest.mark.parametrize("page, line, code", [pytest.param(*b, id=f"{b[0]}:{b[1]}") for b in page_python_blocks()])
+def test_a_pages_python_block_runs(page: str, line: int, code: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
+    """Each block as written, in a namespace of its own, from an empty folder; every ``learn()`` (a TD3X's, a seed
+    batch's) cut to 200 steps, so that a page's ``learn(200_000)`` runs what its code says, for a moment."""
+    from sb3_td3x import SeedBatch
+
+    for cls in (TD3X, SeedBatch):
+        learn = cls.learn
+        monkeypatch.setattr(cls, "learn", lambda self, total_timesteps, *a, _learn=learn, **k: _learn(self, 200, *a, **k))
+    monkeypatch.chdir(tmp_path)
+    exec(compile(code, f"docs/{page}:{line}", "exec"), {"__name__": f"docs_{page[:-3]}_{line}"})
 
 
 def _example_class(stem: str) -> type[TD3X]:
