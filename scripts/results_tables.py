@@ -31,6 +31,7 @@ import re
 import sys
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import yaml
 
@@ -228,19 +229,28 @@ def difference_table(
 
 
 def missing_runs(docs_dir: Path, group: str) -> list[str]:
-    """The runs a group's published aggregate was made from whose records are not under ``<docs dir>/runs``.
+    """The runs a group's published aggregate was made from whose records are not under ``<docs dir>/runs``: no
+    folder, or a folder holding another run, whose return at the step the aggregate ended on is not the one
+    aggregated (the same env, algo and seed made again elsewhere and published where the first run's records, never
+    committed, would have been). A run that has gone on since still has the aggregated return at that step.
 
     Aggregating such a group again, or rewriting its table, would drop those runs from the page (or mix their numbers
-    with the progress of other runs): ``scripts/publish_results.sh`` and :func:`tables` leave such a group as it is.
+    with those of other runs): ``scripts/publish_results.sh`` and :func:`tables` leave such a group as it is.
     """
     per_seed = docs_dir / group / "per_seed.csv"
     if not per_seed.is_file():
         return []
     missing = []
-    for run_dir in read_csv(per_seed).get("run_dir", pd.Series(dtype=str)).astype(str):
-        relative = run_dir.split("/runs/", 1)[-1]
-        if not (docs_dir / "runs" / relative).is_dir():
+    for run in read_csv(per_seed).itertuples():
+        relative = str(run.run_dir).split("/runs/", 1)[-1]
+        folder = docs_dir / "runs" / relative
+        if not folder.is_dir():
             missing.append(relative)
+            continue
+        evaluations = evaluations_of(folder)
+        at = evaluations[evaluations["timesteps"] == run.timesteps] if evaluations is not None else pd.DataFrame()
+        if at.empty or not np.isclose(at["mean_return"].iloc[0], run.final_return, rtol=1e-9, atol=1e-6):
+            missing.append(f"{relative} (holds another run)")
     return missing
 
 

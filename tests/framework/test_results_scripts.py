@@ -215,8 +215,16 @@ def test_a_group_published_from_runs_not_here_is_left_as_it_is(tmp_path):
     assert "table MUJOCO left as it is" in out.stderr and "ant/td3/seed0" in out.stderr
     assert "<!-- MUJOCO -->\nkept\n<!-- /MUJOCO -->" in page.read_text()  # untouched
     assert "| Hopper-v5, TD3 (`td3`) | 0: not started" in page.read_text()  # the others are filled
-    # Once the records are back, the group is rewritten as usual.
-    (tmp_path / "runs" / "ant" / "td3" / "seed0").mkdir(parents=True)
+    # The folder made again by another run of the same seed (published where the first one's records never were):
+    # still missing, said as such (found on the real page, 2026-11-28: the ablation's hopper/td3 seeds).
+    record = tmp_path / "runs" / "ant" / "td3" / "seed0"
+    record.mkdir(parents=True)
+    (record / "evaluations.csv").write_text("timesteps,mean_return\n100000,900.0\n200000,2469.1\n")
+    missing = subprocess.run([*script, "--missing-runs", "td3x_mujoco"], capture_output=True, text=True)
+    assert missing.returncode == 3 and missing.stdout.splitlines() == ["ant/td3/seed0 (holds another run)"]
+    # Once the records are back (the run's, gone on since: the return aggregated at 200k is still there), the group
+    # is rewritten as usual.
+    (record / "evaluations.csv").write_text("timesteps,mean_return\n100000,900.0\n200000,1427.5\n205000,1500.0\n")
     assert subprocess.run([*script, "--missing-runs", "td3x_mujoco"], capture_output=True).returncode == 0
 
 
