@@ -163,7 +163,8 @@ def value_row(name: str, values: pd.DataFrame, env_id: str, algo: str, runs: Pat
 
 
 def value_table(docs_dir: Path, seeds: list[int] | None) -> str:
-    """The overestimation table, then per env DDPG's overestimation minus TD3's (from ``value_bias_compare.csv``)."""
+    """The overestimation table, then per env DDPG's overestimation minus TD3's, and TD3 without clipped double-Q's
+    minus TD3's where it has seeds (from ``value_bias_compare.csv``)."""
     values = read_csv(docs_dir / "value_bias" / "value_bias.csv")
     rows = list(VALUE_HEADER)
     for name, env_id, folder in VALUE_BIAS_ROWS:
@@ -171,8 +172,11 @@ def value_table(docs_dir: Path, seeds: list[int] | None) -> str:
     tables = ["\n".join(rows)]
     for env in dict.fromkeys(folder.split("/")[0] for _, _, folder in VALUE_BIAS_ROWS):
         env_id = MUJOCO[env]
-        ddpg, td3 = (f"{env_id}: DDPG (`ddpg`)", env_id, f"{env}/ddpg"), ("TD3 (`td3`)", env_id, f"{env}/td3")
-        tables.append(difference_table(docs_dir, "value_bias", ddpg, td3, "value_bias_compare.csv", "overestimation"))
+        td3 = ("TD3 (`td3`)", env_id, f"{env}/td3")
+        for other in (f"{env_id}: DDPG (`ddpg`)", env_id, f"{env}/ddpg"), (
+            f"{env_id}: TD3 without clipped double-Q (`td3_no_cdq`)", env_id, f"{env}/td3_no_cdq"
+        ):
+            tables.append(difference_table(docs_dir, "value_bias", other, td3, "value_bias_compare.csv", "overestimation"))
     return "\n\n".join(filter(None, tables))
 
 

@@ -229,11 +229,14 @@ def test_a_group_published_from_runs_not_here_is_left_as_it_is(tmp_path):
 
 
 def test_the_overestimation_table_is_followed_by_ddpg_minus_td3(tmp_path):
+    """And by TD3 without clipped double-Q minus TD3, which value_bias_compare.csv holds as td3 minus td3_no_cdq
+    (each pair once, in name order): turned round, signs and interval too."""
     (tmp_path / "value_bias").mkdir()
     (tmp_path / "value_bias" / "value_bias_compare.csv").write_text(
         "env_id,algo_a,algo_b,n_a,n_b,timesteps,n_evaluations,final_difference,final_ci_low,final_ci_high,final_p_value,"
         "curve_difference,curve_ci_low,curve_ci_high,curve_p_value\n"
         "Hopper-v5,ddpg,td3,5,4,200000,40,299.64,133.3,522.0,0.0079,258.7,202.1,343.9,0.0159\n"
+        "Hopper-v5,td3,td3_no_cdq,6,4,200000,40,-170.1,-307.2,-33.7,0.019,-124.5,-197.8,-50.1,0.0096\n"
     )
     page = tmp_path / "results.md"
     page.write_text("<!-- HOPPER_SB3 -->\n<!-- /HOPPER_SB3 -->\n<!-- ABLATION -->\n<!-- /ABLATION -->\n"
@@ -245,5 +248,8 @@ def test_the_overestimation_table_is_followed_by_ddpg_minus_td3(tmp_path):
     assert "| Hopper-v5: DDPG (`ddpg`) minus TD3 (`td3`) (5 seeds against 4) |" in text
     assert "| overestimation at the last step (200k) | +299.6 (+133.3 to +522.0) | 0.008 |" in text
     assert "| mean overestimation over all 40 evaluations | +258.7 (+202.1 to +343.9) | 0.016 |" in text
+    no_cdq = text.split("TD3 without clipped double-Q (`td3_no_cdq`) minus TD3 (`td3`) (4 seeds against 6) |")[1]
+    assert "| overestimation at the last step (200k) | +170.1 (+33.7 to +307.2) | 0.019 |" in no_cdq
+    assert "| mean overestimation over all 40 evaluations | +124.5 (+50.1 to +197.8) | 0.010 |" in no_cdq
     assert "Walker2d-v5: DDPG" not in text  # no Walker2d runs compared: no table for it
     assert "minus SB3" not in text  # nor for TD3X against SB3
