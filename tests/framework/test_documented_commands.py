@@ -1,15 +1,15 @@
-"""Every ``python run.py`` and ``python -m sb3_td3x.sweeps`` command that the README and the pages of docs/ show is
-one the program accepts, and where a page shows what run.py prints for one (a ``$ `` prompt, then the output), run.py
-prints that.
+"""Every ``python run.py``, ``python -m sb3_td3x.sweeps`` and ``bash scripts/results.sh`` command that the README and
+the pages of docs/ show is one the program accepts, and where a page shows what run.py prints for one (a ``$ ``
+prompt, then the output), run.py prints that.
 
 The commands are read from the pages themselves: the lines of their code blocks and their inline code that run the
 program (after ``VAR=value`` assignments, after ``&&``, or quoted as one word), a ``\\`` continuing a line onto the
 next. A template with a placeholder (``<date>``, ``$(cat best_overrides.txt)``, ``...``) is no command and is left
 out. The commands go through the program's own checks of a command line, in-process, so nothing trains and no
 storage is opened: run.py's :func:`check_command_line` (the config composed as Hydra will, every override and group
-choice checked, a user's class imported) and the sweep's :func:`check_command` (its arguments, the sweep file, the
-trials' overrides, the launcher file). The errors shown run ``run.py`` itself, side by side, so that everything it
-writes to the terminal is compared with the page.
+choice checked, a user's class imported; for results.sh, each env:algo:seed job as the script starts it) and the
+sweep's :func:`check_command` (its arguments, the sweep file, the trials' overrides, the launcher file). The errors
+shown run ``run.py`` itself, side by side, so that everything it writes to the terminal is compared with the page.
 """
 
 from __future__ import annotations
