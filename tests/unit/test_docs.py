@@ -343,7 +343,8 @@ def test_a_pages_python_block_runs(page: str, line: int, code: str, tmp_path: Pa
         learn = cls.learn
         monkeypatch.setattr(cls, "learn", lambda self, total_timesteps, *a, _learn=learn, **k: _learn(self, 200, *a, **k))
     monkeypatch.chdir(tmp_path)
-    exec(compile(code, f"docs/{page}:{line}", "exec"), {"__name__": f"docs_{page[:-3]}_{line}"})  # noqa: S102  (the page's own code)
+    namespace = {"__name__": f"docs_{page[:-3]}_{line}"}
+    exec(compile(code, f"docs/{page}:{line}", "exec"), namespace)  # noqa: S102  (the page's own code)
 
 
 def _example_class(stem: str) -> type[TD3X]:
