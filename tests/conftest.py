@@ -47,6 +47,18 @@ def dynamo_graphs_only(monkeypatch):
     monkeypatch.setattr(CompiledUpdate, "backend", "aot_eager")
 
 
+def importable_from(folder: Path, monkeypatch, module: str = "mymodule") -> None:
+    """``folder`` first on ``sys.path`` for this test, and no ``module`` imported by an earlier test of this worker kept
+    in ``sys.modules`` (tests write modules of one name, e.g. ``mymodule.py``, with different classes): the test
+    imports the one it wrote, and the next test the one it writes."""
+    import sys
+
+    monkeypatch.syspath_prepend(str(folder))
+    sys.modules.pop(module, None)
+    monkeypatch.setitem(sys.modules, module, None)  # monkeypatch now holds "absent" and removes it after the test
+    del sys.modules[module]
+
+
 @pytest.fixture(scope="session", autouse=True)
 def _sb3_logdir(tmp_path_factory):
     """SB3's ``configure(None, ...)`` (every ``learn()`` without ``tensorboard_log``, and the tests' silent loggers)

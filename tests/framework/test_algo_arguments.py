@@ -16,6 +16,7 @@ from pathlib import Path
 import pytest
 import yaml
 from omegaconf import OmegaConf
+from conftest import importable_from
 
 from sb3_td3x.experiment.configs.algos import accepted_arguments, argument_problems
 from sb3_td3x.experiment.configs.compose import check_config, compose_config
@@ -54,7 +55,7 @@ class Strict(TD3X):
 @pytest.fixture
 def mymodule(tmp_path, monkeypatch):
     (tmp_path / "mymodule.py").write_text(MYMODULE)
-    monkeypatch.syspath_prepend(str(tmp_path))
+    importable_from(tmp_path, monkeypatch)
     return tmp_path
 
 
@@ -118,7 +119,7 @@ def test_run_py_refuses_a_misspelt_argument_before_writing_anything(tmp_path):
     assert_refused(result, tmp_path / "run", "algo.polcy_delay=3", "Did you mean algo.policy_delay?")
 
 
-def test_a_users_subclass_trains_with_its_argument_and_config_yaml_records_it(tmp_path):
+def test_a_users_subclass_trains_with_its_argument_and_config_yaml_records_it(tmp_path, monkeypatch):
     """From ``PYTHONPATH``; then from the folder run.py starts in; a misspelt argument of it is refused before anything
     is written (a value of the wrong type is refused by the same check: test_the_arguments_are_the_chosen_classs...)."""
     (tmp_path / "mymodule.py").write_text(MYMODULE)
@@ -127,13 +128,10 @@ def test_a_users_subclass_trains_with_its_argument_and_config_yaml_records_it(tm
                     pythonpath=tmp_path)  # fmt: skip
     assert result.returncode == 0, result.stderr[-3000:]
     assert OmegaConf.load(run_dir / "config.yaml").algo.my_arg == 0.5
-    sys.path.insert(0, str(tmp_path))
-    try:
-        from mymodule import MyTD3
+    importable_from(tmp_path, monkeypatch)
+    from mymodule import MyTD3
 
-        model = MyTD3.load(run_dir / "checkpoints" / "last" / "model.zip")
-    finally:
-        sys.path.remove(str(tmp_path))
+    model = MyTD3.load(run_dir / "checkpoints" / "last" / "model.zip")
     assert model.my_arg == 0.5 and model.num_timesteps == 300
 
     here = tmp_path / "here"

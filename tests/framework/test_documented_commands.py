@@ -22,6 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
+from conftest import importable_from
 
 from sb3_td3x.experiment.cli import EXIT_CONFIG_ERROR, check_command_line
 from sb3_td3x.experiment.configs.schemas import CONF_DIR
@@ -126,7 +127,7 @@ def where_a_user_types_them(tmp_path, monkeypatch):
     experiments = (REPO / "docs" / "experiments.md").read_text(encoding="utf-8")
     (mymodule,) = re.findall(r"```python\n(# mymodule\.py.*?)```", experiments, flags=re.DOTALL)
     (tmp_path / "mymodule.py").write_text(mymodule)
-    monkeypatch.syspath_prepend(str(tmp_path))
+    importable_from(tmp_path, monkeypatch)
     study = tmp_path / "runs" / "sweeps" / "td3x-pendulum"
     (study / TUNED_GROUP).mkdir(parents=True)
     (study / TUNED_GROUP / "best.yaml").write_text(tuned_config(["algo.tau=0.01", "algo.batch_size=128"], CONF_DIR))
