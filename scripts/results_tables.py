@@ -219,7 +219,8 @@ def difference_table(
     r = found.iloc[0]
     n_a, n_b = (int(r.n_a), int(r.n_b)) if sign > 0 else (int(r.n_b), int(r.n_a))
     lines = [
-        f"| {name_a} minus {name_b} ({n_a} seeds against {n_b}) | difference of the means (95% CI) | permutation test p |",
+        f"| {name_a} minus {name_b} ({n_a} seed{'s' * (n_a != 1)} against {n_b}) | difference of the means (95% CI) "
+        "| permutation test p |",
         "|---|---|---|",
     ]
     final = "final return" if quantity == "return" else f"{quantity} at the last step"
