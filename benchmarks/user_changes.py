@@ -15,6 +15,11 @@ The cases:
 - ``huber``: the README's Huber ``critic_loss``;
 - ``noise``: ``target_policy_smoothing_noise`` overridden (a uniform noise in place of the Gaussian one);
 - ``layernorm_policy``: LayerNorm critics through a policy subclass (``make_critic``), as before the network hooks;
+- ``stacked_policy``: the twin critics stacked through a policy subclass: each layer's weights one ``[n_critics, out,
+  in]`` parameter and one ``baddbmm`` for both critics, from SB3's initial weights. What a stacked default critic would
+  gain (opt-in, ``--cases stacked_policy ...``). Its seeded ``learn()`` is the stock one's to rounding after the first
+  gradient step (3e-8 on Pendulum-v1) and drifts as rounding does (the batched product sums in another order):
+  2e-7 after 100 gradient steps, 4e-4 after 300;
 - ``td3_lap``, ``td3_nstep``, ``td3_layernorm``, ``td3_c51``: the variants.
 
 Prints each case's end-to-end steps/s (collection and training), its cores used, its update path, and the median of
@@ -74,12 +79,58 @@ class LayerNormPolicy(TD3XPolicy):
         return LayerNormCritic(**critic_kwargs).to(self.device)
 
 
+class StackedCritic(TD3XCritic):
+    """SB3's critics with each layer's weights stacked over the critics: one batched product a layer for all of them
+    (``q_values``), the first critic's slice alone for the actor's loss (``q1_forward``)."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)  # SB3's networks, drawn as SB3 draws them, then stacked
+        layers = [[m for m in q_net if isinstance(m, th.nn.Linear)] for q_net in self.q_networks]
+        self.weights = th.nn.ParameterList(th.stack([net[i].weight.detach() for net in layers])
+                                           for i in range(len(layers[0])))  # fmt: skip
+        self.biases = th.nn.ParameterList(th.stack([net[i].bias.detach() for net in layers]).unsqueeze(1)
+                                          for i in range(len(layers[0])))  # fmt: skip
+        for i in range(len(self.q_networks)):
+            delattr(self, f"qf{i}")
+        self.q_networks = []
+
+    def _input(self, obs, actions, grad: bool):
+        with th.set_grad_enabled(grad):
+            features = self.extract_features(obs, self.features_extractor)
+        return th.cat([features, actions], dim=1)
+
+    def q_values(self, obs, actions):
+        x = self._input(obs, actions, not self.share_features_extractor)
+        h = x.expand(len(self.weights[0]), *x.shape)
+        for i, (weight, bias) in enumerate(zip(self.weights, self.biases)):
+            h = th.baddbmm(bias, h, weight.mT)
+            h = h.relu() if i < len(self.weights) - 1 else h
+        return h
+
+    def forward(self, obs, actions):
+        return tuple(self.q_values(obs, actions).unbind(0))
+
+    def q1_forward(self, obs, actions):
+        h = self._input(obs, actions, False)
+        for i, (weight, bias) in enumerate(zip(self.weights, self.biases)):
+            h = th.addmm(bias[0], h, weight[0].t())
+            h = h.relu() if i < len(self.weights) - 1 else h
+        return h
+
+
+class StackedPolicy(TD3XPolicy):
+    def make_critic(self, features_extractor=None):
+        critic_kwargs = self._update_features_extractor(self.critic_kwargs, features_extractor)
+        return StackedCritic(**critic_kwargs).to(self.device)
+
+
 CASES = {
     "stock": (TD3X, {}),
     "stock_again": (TD3X, {}),  # a second stock TD3X: the A/A control, what the host's noise and the order alone give
     "huber": (HuberTD3, {}),
     "noise": (UniformNoiseTD3, {}),
     "layernorm_policy": (TD3X, {"policy": LayerNormPolicy}),
+    "stacked_policy": (TD3X, {"policy": StackedPolicy}),
     "td3_lap": (TD3LAP, {}),
     "td3_nstep": (TD3NStep, {}),
     "td3_layernorm": (TD3LayerNorm, {}),
@@ -100,7 +151,8 @@ def main() -> None:
     parser.add_argument("--env", default="Hopper-v5")
     parser.add_argument("--batch-size", type=int, default=100)
     parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--cases", nargs="+", default=[c for c in CASES if c != "stock_again"], choices=list(CASES))
+    parser.add_argument("--cases", nargs="+", default=[c for c in CASES if c not in ("stock_again", "stacked_policy")],
+                        choices=list(CASES))
     parser.add_argument("--chunks", type=int, default=6)
     parser.add_argument("--chunk-steps", type=int, default=400)
     parser.add_argument("--warmup", type=int, default=1_500, help="steps before timing (1000 random, then compilation)")
