@@ -126,8 +126,8 @@ class TD3X(OffPolicyAlgorithm):
     :param clipped_double_q: use the minimum over the critic targets in the TD target (step 8). ``False`` uses the
         first critic target only, as DDPG does
     :param bf16: opt-in: the forward passes of the update under bf16 autocast (AMX on recent x86 CPUs, tensor cores on
-        GPUs), with fp32 weights, gradients, optimizer states and losses. A CPU without AVX512-BF16 or AMX (an AVX2
-        one) runs bf16 products in software, tens of times slower than fp32: TD3X warns there
+        GPUs), with fp32 weights, gradients, optimizer states and losses. A CPU without AMX runs them slower than fp32
+        (in software without AVX512-BF16, tens of times slower; with AVX512-BF16 alone, measured slower): TD3X warns there
     :param compile_update: run the update (steps 5 to 15: the hooks as written, both optimizer steps included) as one
         ``torch.compile`` graph (:class:`~sb3_td3x.td3x.update_paths.compiled.CompiledUpdate`). ``None`` (auto, the
         default) compiles on a CPU or a GPU, in fp32, with a C++ compiler, for a run of at least

@@ -96,7 +96,7 @@ def test_the_accelerations_are_config_switches():
     check_config(cfg)
     env = make_train_env(cfg.env, n_envs=1, seed=0)
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # bf16 on a CPU without bf16 instructions warns (test_acceleration.py)
+        warnings.simplefilter("ignore")  # bf16 on a CPU without AMX warns (test_acceleration.py)
         model = build_algorithm(cfg, env)
     assert (model.bf16, model.compile_update, model.cuda_graph) == (True, True, False)
     defaults = build_algorithm(compose_config(["algo=td3", "algo.buffer_size=1000", "device=cpu"]), env)

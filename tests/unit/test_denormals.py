@@ -78,7 +78,7 @@ def test_compiled_bf16_update_stays_finite_over_uninitialised_memory():
 
     model.sample_batch = sample
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # bf16 on a CPU without bf16 instructions warns (test_acceleration.py)
+        warnings.simplefilter("ignore")  # bf16 on a CPU without AMX warns (test_acceleration.py)
         model.train(gradient_steps=24, batch_size=256)
     assert model.update_path == "compiled"
     assert all(p.isfinite().all() for p in model.policy.parameters())
