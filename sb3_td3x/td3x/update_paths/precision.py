@@ -37,6 +37,9 @@ def cpu_bf16_matmul() -> str | None:
     return "amx" if amx() else "avx512_bf16" if avx512_bf16() else "emulated"
 
 
+_USE_FP32 = "Use bf16=False on this machine; bf16 pays off on CPUs with AMX and on GPUs."
+
+
 def bf16_on_cpu_warning(device: th.device) -> str | None:
     """The warning for ``bf16=True`` on ``device``: set when it is a CPU without AMX, where bf16 was measured slower
     than fp32 (:func:`cpu_bf16_matmul`)."""
@@ -47,13 +50,11 @@ def bf16_on_cpu_warning(device: th.device) -> str | None:
         capability = th.backends.cpu.get_cpu_capability()
         return (
             f"bf16=True on a CPU without bf16 matrix instructions (no AVX512-BF16 or AMX; torch reports {capability}): "
-            "its bf16 matrix products run in software emulation, tens of times slower than fp32. Use bf16=False on "
-            "this machine; bf16 pays off on CPUs with AMX and on GPUs."
+            f"its bf16 matrix products run in software emulation, tens of times slower than fp32. {_USE_FP32}"
         )
     if kind == "avx512_bf16":
         return (
             "bf16=True on a CPU with AVX512-BF16 but no AMX: on such a CPU (a 2-core Xeon) the bf16 products ran "
-            "slower than fp32 (Ant-v5: 0.80x SB3's TD3 against 1.38x in fp32, docs/performance.md). Use bf16=False on "
-            "this machine; bf16 pays off on CPUs with AMX and on GPUs."
+            f"slower than fp32 (Ant-v5: 0.80x SB3's TD3 against 1.38x in fp32, docs/performance.md). {_USE_FP32}"
         )
     return None
