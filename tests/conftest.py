@@ -13,7 +13,10 @@ from pathlib import Path
 import gymnasium as gym
 import pytest
 import torch as th
+from stable_baselines3.common.callbacks import EvalCallback, StopTrainingOnRewardThreshold
+from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.type_aliases import ReplayBufferSamples
+from stable_baselines3.common.vec_env import DummyVecEnv
 
 # Two cores: keep torch from oversubscribing them when tests run in parallel processes.
 th.set_num_threads(int(os.environ.get("SB3_TD3X_TEST_THREADS", "1")))
@@ -223,3 +226,33 @@ class DummyEnv(gym.Env):
 
     def step(self, action):
         return self.observation_space.sample(), 0.0, False, False, {}
+
+
+PENDULUM_BAR = -250.0  # random actions score about -1200 on Pendulum-v1, a learnt swing-up about -150
+
+
+def learn_until_the_bar(name: str, model, max_steps: int, folder: Path, eval_seed: int = 10_000) -> list[tuple[int, float]]:
+    """The learning checks' one measure (tests/learning): train ``model`` until its deterministic policy scores
+    PENDULUM_BAR on Pendulum-v1 or ``max_steps`` pass, print its evaluations as (steps, mean return) pairs, and fail if
+    none reached the bar. SB3's own EvalCallback evaluates every 500 steps (10 episodes) and
+    StopTrainingOnRewardThreshold ends the run at the first evaluation over the bar, as rl-zoo's learning checks do:
+    Pendulum's policies swing between evaluations, and one seed follows another trajectory on another CPU, so the
+    policy at one fixed step is a fragile measure (tests/learning/test_variants_learn.py says what was measured)."""
+    eval_env = DummyVecEnv([lambda: Monitor(gym.make("Pendulum-v1"))])
+    eval_env.seed(eval_seed)
+    evaluation = EvalCallback(
+        eval_env,
+        callback_on_new_best=StopTrainingOnRewardThreshold(reward_threshold=PENDULUM_BAR),
+        eval_freq=500,
+        n_eval_episodes=10,
+        log_path=str(folder),  # keeps each evaluation's returns in evaluation.evaluations_results
+        deterministic=True,
+        verbose=0,
+    )
+    model.learn(total_timesteps=max_steps, callback=evaluation)
+    means = [round(sum(returns) / len(returns), 1) for returns in evaluation.evaluations_results]
+    evaluations = list(zip(evaluation.evaluations_timesteps, means))
+    print(f"{name} ({model.update_path}): {evaluations}")
+    best = max(means)
+    assert best >= PENDULUM_BAR, f"{name}: best {best} < {PENDULUM_BAR} in {max_steps:,} steps; evaluations: {evaluations}"
+    return evaluations

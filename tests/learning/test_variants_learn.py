@@ -1,7 +1,7 @@
 """Each variant of sb3_td3x.variants learns: Pendulum-v1 reaches a mean deterministic return of at least -250 (the bar
 of test_learning.py) within 10,000 steps, with 64-64 networks, on one seed. SB3's own EvalCallback evaluates the policy
 every 500 steps (10 episodes) and StopTrainingOnRewardThreshold ends the run at the first evaluation over the bar
-(tests/learning/conftest.py).
+(``conftest.learn_until_the_bar``).
 
 Why the first evaluation over the bar, not the last policy: Pendulum's policies swing between evaluations (a learnt
 policy at -130 falls to -340 or -670 for a while and comes back), and the same seed follows another trajectory on
@@ -20,7 +20,9 @@ tests/equivalence/test_n_step_returns.py.
 import gymnasium as gym
 import numpy as np
 import pytest
+from conftest import learn_until_the_bar
 from stable_baselines3.common.noise import NormalActionNoise
+
 
 from sb3_td3x.variants import TD3C51, TD3LAP, TD3LayerNorm, TD3NStep
 
@@ -36,7 +38,7 @@ VARIANTS = {  # the class and its arguments
 @pytest.mark.slow
 @pytest.mark.timeout(600)
 @pytest.mark.parametrize("name", list(VARIANTS))
-def test_the_variant_learns_pendulum(name, learn_until_the_bar):
+def test_the_variant_learns_pendulum(name, tmp_path):
     cls, kwargs = VARIANTS[name]
     model = cls(
         "MlpPolicy",
@@ -47,4 +49,4 @@ def test_the_variant_learns_pendulum(name, learn_until_the_bar):
         seed=0,
         **{"learning_starts": 1_000, **kwargs},
     )
-    learn_until_the_bar(name, model, MAX_STEPS)
+    learn_until_the_bar(name, model, MAX_STEPS, tmp_path)
