@@ -12,7 +12,6 @@ import pytest
 from conftest import learn_until_the_bar
 from stable_baselines3.common.noise import NormalActionNoise
 
-
 from sb3_td3x import TD3X
 
 MAX_STEPS = 10_000

@@ -23,7 +23,6 @@ import pytest
 from conftest import learn_until_the_bar
 from stable_baselines3.common.noise import NormalActionNoise
 
-
 from sb3_td3x.variants import TD3C51, TD3LAP, TD3LayerNorm, TD3NStep
 
 MAX_STEPS = 10_000
