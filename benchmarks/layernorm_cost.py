@@ -1,0 +1,113 @@
+"""What LayerNorm critics cost the update alone: ``train()``'s time per gradient step, stock critics against LayerNorm
+critics (``user_changes.py``'s ``layernorm_policy``: a LayerNorm after each hidden Linear), for TD3X's default of a
+long run (the hooks compiled as written) and for SB3's ``TD3`` with the same critics, chunks of 100 gradient steps
+alternated in one process after 1,500 environment steps (``throughput.py``'s settings: 400-300, lr 1e-3).
+
+    python benchmarks/layernorm_cost.py                      # Hopper-v5, batch 100, 2 threads
+    python benchmarks/layernorm_cost.py --profile            # and the operators of one chunk each, by self time
+    TORCHINDUCTOR_FORCE_DISABLE_CACHES=1 python benchmarks/layernorm_cost.py --aten-layernorm
+
+``--aten-layernorm`` keeps ATen's own LayerNorm kernels (forward and backward) inside the compiled graph in place of
+the kernels Inductor generates from its decomposition (a probe of Inductor's internals, for this measurement only:
+run it with the caches off, since the cache key does not see the change). Not part of the test suite; needs a quiet
+machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import torch as th
+from stable_baselines3 import TD3
+from stable_baselines3.common.policies import ContinuousCritic
+from stable_baselines3.common.torch_layers import create_mlp
+from stable_baselines3.td3.policies import TD3Policy
+from throughput import make_model
+from user_changes import LayerNormPolicy
+
+from sb3_td3x import TD3X
+
+
+class SB3LayerNormCritic(ContinuousCritic):
+    """SB3's critic with a LayerNorm after each hidden layer (``user_changes.LayerNormCritic`` for SB3's ``TD3``)."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        for i in range(len(self.q_networks)):
+            first = self.q_networks[i][0]
+            widths = [m.out_features for m in self.q_networks[i] if isinstance(m, th.nn.Linear)][:-1]
+            layers = create_mlp(first.in_features, 1, widths, th.nn.ReLU, post_linear_modules=[th.nn.LayerNorm])
+            net = th.nn.Sequential(*layers)
+            self.add_module(f"qf{i}", net)
+            self.q_networks[i] = net
+
+
+class SB3LayerNormPolicy(TD3Policy):
+    def make_critic(self, features_extractor=None):
+        critic_kwargs = self._update_features_extractor(self.critic_kwargs, features_extractor)
+        return SB3LayerNormCritic(**critic_kwargs).to(self.device)
+
+
+def aten_layernorm_in_compiled_graphs() -> None:
+    """Inductor calls ATen's LayerNorm kernels instead of generating its own from the decomposition."""
+    from torch._inductor import decomposition, lowering
+
+    aten = th.ops.aten
+    for op in (aten.native_layer_norm.default, aten.native_layer_norm_backward.default):
+        decomposition.decompositions.pop(op, None)
+    lowering.make_fallback(aten.native_layer_norm, warn=False)
+    lowering.make_fallback(aten.native_layer_norm_backward, warn=False)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--env", default="Hopper-v5")
+    parser.add_argument("--batch-size", type=int, default=100)
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--chunks", type=int, default=12)
+    parser.add_argument("--aten-layernorm", action="store_true")
+    parser.add_argument("--profile", action="store_true")
+    args = parser.parse_args()
+    th.set_num_threads(args.threads)
+    if args.aten_layernorm:
+        aten_layernorm_in_compiled_graphs()
+
+    def with_policy(algo, policy):
+        return lambda _mlp, env, **kwargs: algo(policy, env, **kwargs)
+
+    extra = {"batch_size": args.batch_size}
+    models = {
+        "TD3X": make_model(TD3X, args.env, 0, extra),
+        "TD3X, LayerNorm critics": make_model(with_policy(TD3X, LayerNormPolicy), args.env, 0, extra),
+        "SB3 TD3": make_model(TD3, args.env, 0, extra),
+        "SB3 TD3, LayerNorm critics": make_model(with_policy(TD3, SB3LayerNormPolicy), args.env, 0, extra),
+    }
+    for model in models.values():
+        model.learn(1_500)
+        model.train(gradient_steps=50, batch_size=args.batch_size)  # compiles TD3X's update
+    times: dict[str, list[float]] = {name: [] for name in models}
+    for _ in range(args.chunks):
+        for name, model in models.items():
+            start = time.perf_counter()
+            model.train(gradient_steps=100, batch_size=args.batch_size)
+            times[name].append((time.perf_counter() - start) * 1e3 / 100)
+    ms = {name: statistics.median(chunk_times) for name, chunk_times in times.items()}
+    print(f"{args.env}, batch {args.batch_size}, {args.threads} threads; ms per gradient step (median of {args.chunks})")
+    for name in models:
+        print(f"  {name:28s} {ms[name]:.3f}")
+    print(f"LayerNorm / stock: TD3X {ms['TD3X, LayerNorm critics'] / ms['TD3X']:.3f}, "
+          f"SB3 {ms['SB3 TD3, LayerNorm critics'] / ms['SB3 TD3']:.3f}")  # fmt: skip
+    if args.profile:
+        from torch.profiler import ProfilerActivity, profile
+
+        for name in ("TD3X", "TD3X, LayerNorm critics"):
+            with profile(activities=[ProfilerActivity.CPU]) as prof:
+                models[name].train(gradient_steps=100, batch_size=args.batch_size)
+            print(f"{name}: 100 gradient steps")
+            print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=12))
+
+
+if __name__ == "__main__":
+    main()
