@@ -16,10 +16,13 @@ The cases:
 - ``noise``: ``target_policy_smoothing_noise`` overridden (a uniform noise in place of the Gaussian one);
 - ``layernorm_policy``: LayerNorm critics through a policy subclass (``make_critic``), as before the network hooks;
 - ``stacked_policy``: the twin critics stacked through a policy subclass: each layer's weights one ``[n_critics, out,
-  in]`` parameter and one ``baddbmm`` for both critics, from SB3's initial weights. What a stacked default critic would
-  gain (opt-in, ``--cases stacked_policy ...``). Its seeded ``learn()`` is the stock one's to rounding after the first
-  gradient step (3e-8 on Pendulum-v1) and drifts as rounding does (the batched product sums in another order):
-  2e-7 after 100 gradient steps, 4e-4 after 300;
+  in]`` parameter, from SB3's initial weights, and one ``baddbmm`` a hidden layer for both critics; the output layer
+  (one unit) runs per critic. What a stacked default critic would gain (opt-in, ``--cases stacked_policy ...``). Its
+  seeded eager ``learn()`` is the stock one's bit for bit with Adam's loop or ``foreach`` kernel
+  (tests/equivalence/test_stacked_critic.py): ATen's batched product rounds as its single product does, except for
+  a one-unit output, where the stacked product differs (1e-5 in a weight's gradient); torch's fused CPU Adam rounds an
+  element by where it falls in the tensor (the vectorised body or the tail), so under it the stacked parameters
+  drift from the separate ones from about the fifth gradient step (1e-10);
 - ``td3_lap``, ``td3_nstep``, ``td3_layernorm``, ``td3_c51``: the variants.
 
 Prints each case's end-to-end steps/s (collection and training), its cores used, its update path, and the median of
@@ -80,8 +83,9 @@ class LayerNormPolicy(TD3XPolicy):
 
 
 class StackedCritic(TD3XCritic):
-    """SB3's critics with each layer's weights stacked over the critics: one batched product a layer for all of them
-    (``q_values``), the first critic's slice alone for the actor's loss (``q1_forward``)."""
+    """SB3's critics with each layer's weights stacked over the critics: one batched product a hidden layer for all of
+    them and the one-unit output per critic (``q_values``), the first critic's slice alone for the actor's loss
+    (``q1_forward``)."""
 
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)  # SB3's networks, drawn as SB3 draws them, then stacked
@@ -102,10 +106,10 @@ class StackedCritic(TD3XCritic):
     def q_values(self, obs, actions):
         x = self._input(obs, actions, not self.share_features_extractor)
         h = x.expand(len(self.weights[0]), *x.shape)
-        for i, (weight, bias) in enumerate(zip(self.weights, self.biases)):
-            h = th.baddbmm(bias, h, weight.mT)
-            h = h.relu() if i < len(self.weights) - 1 else h
-        return h
+        for i in range(len(self.weights) - 1):
+            h = th.baddbmm(self.biases[i], h, self.weights[i].mT).relu()
+        weight, bias = self.weights[-1], self.biases[-1]  # one unit: per critic, as SB3's product rounds it
+        return th.stack([th.addmm(bias[i], h[i], weight[i].t()) for i in range(len(weight))])
 
     def forward(self, obs, actions):
         return tuple(self.q_values(obs, actions).unbind(0))
