@@ -20,9 +20,9 @@ The cases:
   (one unit) runs per critic. What a stacked default critic would gain (opt-in, ``--cases stacked_policy ...``). Its
   seeded eager ``learn()`` is the stock one's bit for bit with Adam's loop or ``foreach`` kernel
   (tests/equivalence/test_stacked_critic.py): ATen's batched product rounds as its single product does, except for
-  a one-unit output, where the stacked product differs (1e-5 in a weight's gradient); torch's fused CPU Adam rounds an
-  element by where it falls in the tensor (the vectorised body or the tail), so under it the stacked parameters
-  drift from the separate ones from about the fifth gradient step (1e-10);
+  a one-unit output, where the stacked product differs (1e-5 in a weight's gradient). Under torch's fused CPU Adam
+  (TD3X's default) a stacked bias left the separate ones by one rounding (1e-10) at the third to fifth gradient step;
+  why is not known (a direct probe of fused Adam on a tensor and on its halves found no difference);
 - ``td3_lap``, ``td3_nstep``, ``td3_layernorm``, ``td3_c51``: the variants.
 
 Prints each case's end-to-end steps/s (collection and training), its cores used, its update path, and the median of
