@@ -235,7 +235,7 @@ def learn_until_the_bar(name: str, model, max_steps: int, folder: Path, eval_see
     """The learning checks' one measure (tests/learning): train ``model`` until its deterministic policy scores
     PENDULUM_BAR on Pendulum-v1 or ``max_steps`` pass, print its evaluations as (steps, mean return) pairs, and fail if
     none reached the bar. SB3's own EvalCallback evaluates every 500 steps (10 episodes) and
-    StopTrainingOnRewardThreshold ends the run at the first evaluation over the bar, as rl-zoo's learning checks do:
+    StopTrainingOnRewardThreshold ends the run at the first evaluation over the bar (SB3's documented pairing):
     Pendulum's policies swing between evaluations, and one seed follows another trajectory on another CPU, so the
     policy at one fixed step is a fragile measure (tests/learning/test_variants_learn.py says what was measured)."""
     eval_env = DummyVecEnv([lambda: Monitor(gym.make("Pendulum-v1"))])
