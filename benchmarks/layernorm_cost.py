@@ -22,10 +22,8 @@ import time
 import torch as th
 from stable_baselines3 import TD3
 from stable_baselines3.common.policies import ContinuousCritic
-from stable_baselines3.common.torch_layers import create_mlp
 from stable_baselines3.td3.policies import TD3Policy
-from throughput import make_model
-from user_changes import LayerNormPolicy
+from user_changes import LayerNormPolicy, add_layer_norms, build_model
 
 from sb3_td3x import TD3X
 
@@ -35,13 +33,7 @@ class SB3LayerNormCritic(ContinuousCritic):
 
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
-        for i in range(len(self.q_networks)):
-            first = self.q_networks[i][0]
-            widths = [m.out_features for m in self.q_networks[i] if isinstance(m, th.nn.Linear)][:-1]
-            layers = create_mlp(first.in_features, 1, widths, th.nn.ReLU, post_linear_modules=[th.nn.LayerNorm])
-            net = th.nn.Sequential(*layers)
-            self.add_module(f"qf{i}", net)
-            self.q_networks[i] = net
+        add_layer_norms(self)
 
 
 class SB3LayerNormPolicy(TD3Policy):
@@ -74,15 +66,11 @@ def main() -> None:
     if args.aten_layernorm:
         aten_layernorm_in_compiled_graphs()
 
-    def with_policy(algo, policy):
-        return lambda _mlp, env, **kwargs: algo(policy, env, **kwargs)
-
-    extra = {"batch_size": args.batch_size}
     models = {
-        "TD3X": make_model(TD3X, args.env, 0, extra),
-        "TD3X, LayerNorm critics": make_model(with_policy(TD3X, LayerNormPolicy), args.env, 0, extra),
-        "SB3 TD3": make_model(TD3, args.env, 0, extra),
-        "SB3 TD3, LayerNorm critics": make_model(with_policy(TD3, SB3LayerNormPolicy), args.env, 0, extra),
+        "TD3X": build_model(TD3X, args.env, args.batch_size),
+        "TD3X, LayerNorm critics": build_model(TD3X, args.env, args.batch_size, policy=LayerNormPolicy),
+        "SB3 TD3": build_model(TD3, args.env, args.batch_size),
+        "SB3 TD3, LayerNorm critics": build_model(TD3, args.env, args.batch_size, policy=SB3LayerNormPolicy),
     }
     for model in models.values():
         model.learn(1_500)

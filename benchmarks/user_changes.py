@@ -64,17 +64,22 @@ class UniformNoiseTD3(TD3X):
         return noise.clamp(-self.target_noise_clip, self.target_noise_clip)
 
 
+def add_layer_norms(critic: th.nn.Module) -> None:
+    """Rebuild each of an SB3-style critic's networks with a LayerNorm after each hidden Linear."""
+    for i in range(len(critic.q_networks)):
+        first = critic.q_networks[i][0]
+        widths = [m.out_features for m in critic.q_networks[i] if isinstance(m, th.nn.Linear)][:-1]
+        net = th.nn.Sequential(*create_mlp(first.in_features, 1, widths, th.nn.ReLU, post_linear_modules=[th.nn.LayerNorm]))
+        critic.add_module(f"qf{i}", net)
+        critic.q_networks[i] = net
+
+
 class LayerNormCritic(TD3XCritic):
     """SB3's critic with a LayerNorm after each hidden layer, built the way a user did before the network hooks."""
 
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
-        for i in range(len(self.q_networks)):
-            first = self.q_networks[i][0]
-            widths = [m.out_features for m in self.q_networks[i] if isinstance(m, th.nn.Linear)][:-1]
-            net = th.nn.Sequential(*create_mlp(first.in_features, 1, widths, th.nn.ReLU, post_linear_modules=[th.nn.LayerNorm]))
-            self.add_module(f"qf{i}", net)
-            self.q_networks[i] = net
+        add_layer_norms(self)
 
 
 class LayerNormPolicy(TD3XPolicy):
@@ -143,12 +148,15 @@ CASES = {
 }
 
 
+def build_model(cls: type, env_id: str, batch_size: int, policy: type | None = None, **kwargs) -> TD3X:
+    """``cls`` with the benchmark's settings (``throughput.make_model``), built with the user's policy class if given."""
+    algo = cls if policy is None else (lambda _mlp, env, **kw: cls(policy, env, **kw))
+    return make_model(algo, env_id, 0, {"batch_size": batch_size, **kwargs})
+
+
 def build(name: str, env_id: str, batch_size: int) -> TD3X:
     cls, kwargs = CASES[name]
-    kwargs = dict(kwargs)
-    policy = kwargs.pop("policy", None)
-    algo = cls if policy is None else (lambda _mlp, env, **kw: cls(policy, env, **kw))  # the user's policy class
-    return make_model(algo, env_id, 0, {"batch_size": batch_size, **kwargs})
+    return build_model(cls, env_id, batch_size, **kwargs)
 
 
 def main() -> None:
