@@ -754,12 +754,17 @@ def test_discrete_observations_step_aside_and_say_why(dynamo_graphs_only):
 def test_auto_compiles_a_long_run_and_it_trains_what_the_hooks_train(monkeypatch):
     """compile_update=None (auto) on a run long enough (here: every run) compiles the update, the default of a long
     run on a CPU (Inductor: the graph of test_inductor_compiles_a_users_change_as_written[stock-defaults]); the
-    comparison sees a different update (another tau, eagerly: no other graph to compile)."""
+    comparison sees a different update (another tau, eagerly: no other graph to compile). Its products run without
+    their biases (``graph_passes``), which the pointwise kernels after them add."""
     monkeypatch.setattr(TD3X, "compile_auto_min_steps", 0)
     auto = train_updates(STOCK["stock-defaults"], updates=20)
     reference = train_updates(STOCK["stock-defaults"], updates=20, compile_update=False)
     assert auto.update_path == "compiled" and auto.update_compiled
     assert_same_weights(auto, reference)
+    with th.profiler.profile(activities=[th.profiler.ProfilerActivity.CPU]) as profile:
+        auto.train(gradient_steps=2, batch_size=auto.batch_size)
+    operators = {event.key for event in profile.key_averages()}
+    assert "aten::mm" in operators and "aten::addmm" not in operators  # graph_passes: each bias after its product
     other_tau = train_updates(STOCK["stock-defaults"], updates=20, compile_update=False, tau=0.02)
     with pytest.raises(AssertionError):
         assert_same_weights(auto, other_tau)

@@ -350,3 +350,32 @@ def test_auto_asks_about_the_machine_and_the_run_only(monkeypatch):
 def test_compile_update_is_none_true_or_false():
     with pytest.raises(ValueError, match="invalid compile_update='yes'; compile_update must be None"):
         small(compile_update="yes")
+
+
+def test_the_compiled_update_adds_each_bias_after_its_product():
+    """graph_passes.bias_after_product: a CPU addmm in float32 becomes mm + add (the bias added by the next pointwise
+    kernel), computing x @ w + b as eagerly written; a bfloat16 one, or one with alpha or beta, is left as it is.
+    test_user_changes.py's test_auto_compiles_a_long_run... checks that the compiled default runs no addmm."""
+    from torch.fx.experimental.proxy_tensor import make_fx
+
+    from sb3_td3x.td3x.update_paths.graph_passes import bias_after_product, inductor_options
+
+    def targets(graph_module):
+        return [node.target for node in graph_module.graph.nodes if node.op == "call_function"]
+
+    aten = th.ops.aten
+    for dtype, alpha, rewritten in ((th.float32, 1, True), (th.float64, 1, True), (th.bfloat16, 1, False),
+                                    (th.float32, 2, False)):  # fmt: skip
+        x, w, b = th.randn(8, 5, dtype=dtype), th.randn(3, 5, dtype=dtype), th.randn(3, dtype=dtype)
+        graph_module = make_fx(lambda x, w, b: th.addmm(b, x, w.t(), alpha=alpha).relu(), tracing_mode="fake")(x, w, b)
+        assert aten.addmm.default in targets(graph_module)
+        bias_after_product()(graph_module.graph)
+        graph_module.recompile()
+        assert (aten.addmm.default not in targets(graph_module)) == rewritten, (dtype, alpha)
+        if rewritten:
+            assert aten.mm.default in targets(graph_module) and aten.add.Tensor in targets(graph_module)
+            assert th.equal(graph_module(x, w, b), (x @ w.t() + b).relu())
+    assert inductor_options(None) == {"post_grad_custom_post_pass": bias_after_product()}
+    mine = object()
+    assert inductor_options({"post_grad_custom_post_pass": mine}) == {"post_grad_custom_post_pass": mine}
+    assert inductor_options({"post_grad_custom_post_pass": None}) == {"post_grad_custom_post_pass": None}  # none

@@ -33,6 +33,7 @@ import torch as th
 
 from sb3_td3x.td3x.optim import FIRST_GRADIENT, NO_STATE, PREPARED, prepare
 from sb3_td3x.td3x.hooks import changed_hooks
+from sb3_td3x.td3x.update_paths.graph_passes import inductor_options
 
 log = logging.getLogger(__name__)
 
@@ -129,7 +130,8 @@ class CompiledUpdate:
     #: ``torch.compile``'s backend: Inductor. (The catalogue of user changes in the tests also runs Dynamo's graphs
     #: with ``"aot_eager"``, AOTAutograd's graph on eager kernels, to check the capture alone, fast.)
     backend: str = "inductor"
-    #: ``torch.compile``'s ``options`` (Inductor's settings), for experiments; none by default.
+    #: ``torch.compile``'s ``options`` (Inductor's settings), for experiments; none by default. With Inductor's default
+    #: mode, :mod:`.graph_passes`'s pass is added unless these name a ``post_grad_custom_post_pass`` (``None``: no pass).
     options: dict[str, Any] | None = None
 
     def __init__(self, model: Any, mode: str | None = None):
@@ -156,9 +158,10 @@ class CompiledUpdate:
     def _compile(self) -> dict[bool, Callable[[Any], Infos]]:
         """One compiled function per value of update_actor (each holds one graph, so no guard fails at each call), each
         with a code object of its own: a new pair starts with no graph (:meth:`__call__`, when a class changed)."""
+        inductor_default = self.backend == "inductor" and self.mode is None  # torch.compile takes a mode or options
         compile_ = functools.partial(
             th.compile, fullgraph=True, backend=self.backend, mode=self.mode if self.backend == "inductor" else None,
-            options=self.options,
+            options=inductor_options(self.options) if inductor_default else self.options,
         )
         return {flag: compile_(_own_code(_step(self.model, flag, self.whole_step))) for flag in (False, True)}
 
