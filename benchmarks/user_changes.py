@@ -24,6 +24,8 @@ The cases:
   (TD3X's default) a stacked bias of 2 by 300 leaves the separate ones by one rounding (1e-10) within a few gradient
   steps: the kernel takes a tensor's last ``numel % 8`` elements through a scalar tail that rounds otherwise than its
   vector body, and stacking moves the separate biases' tails into the body;
+- ``no_bias_pass``: the stock TD3X compiled without ``graph_passes``'s bias-after-product pass (opt-in): what the pass
+  gains;
 - ``td3_lap``, ``td3_nstep``, ``td3_layernorm``, ``td3_c51``: the variants.
 
 Prints each case's end-to-end steps/s (collection and training), its cores used, its update path, and the median of
@@ -45,6 +47,7 @@ from throughput import make_model
 
 from sb3_td3x import TD3X
 from sb3_td3x.td3x.policies import TD3XCritic, TD3XPolicy
+from sb3_td3x.td3x.update_paths.compiled import CompiledUpdate
 from sb3_td3x.variants import TD3C51, TD3LAP, TD3LayerNorm, TD3NStep
 
 
@@ -128,6 +131,19 @@ class StackedCritic(TD3XCritic):
         return h
 
 
+class NoBiasPassTD3(TD3X):
+    """The stock TD3X, its update compiled without Inductor's post-grad pass of ``graph_passes`` (each ``addmm`` left
+    as it is): ``CompiledUpdate.options`` set for the length of each ``train()`` call, where the update is compiled."""
+
+    def train(self, *args, **kwargs):
+        saved = CompiledUpdate.options
+        CompiledUpdate.options = {"post_grad_custom_post_pass": None}
+        try:
+            return super().train(*args, **kwargs)
+        finally:
+            CompiledUpdate.options = saved
+
+
 class StackedPolicy(TD3XPolicy):
     def make_critic(self, features_extractor=None):
         critic_kwargs = self._update_features_extractor(self.critic_kwargs, features_extractor)
@@ -141,6 +157,7 @@ CASES = {
     "noise": (UniformNoiseTD3, {}),
     "layernorm_policy": (TD3X, {"policy": LayerNormPolicy}),
     "stacked_policy": (TD3X, {"policy": StackedPolicy}),
+    "no_bias_pass": (NoBiasPassTD3, {}),
     "td3_lap": (TD3LAP, {}),
     "td3_nstep": (TD3NStep, {}),
     "td3_layernorm": (TD3LayerNorm, {}),
@@ -164,7 +181,8 @@ def main() -> None:
     parser.add_argument("--env", default="Hopper-v5")
     parser.add_argument("--batch-size", type=int, default=100)
     parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--cases", nargs="+", default=[c for c in CASES if c not in ("stock_again", "stacked_policy")],
+    opt_in = ("stock_again", "stacked_policy", "no_bias_pass")
+    parser.add_argument("--cases", nargs="+", default=[c for c in CASES if c not in opt_in],
                         choices=list(CASES))
     parser.add_argument("--chunks", type=int, default=6)
     parser.add_argument("--chunk-steps", type=int, default=400)
