@@ -354,7 +354,7 @@ def test_compile_update_is_none_true_or_false():
 
 def test_the_compiled_update_adds_each_bias_after_its_product():
     """graph_passes.bias_after_product: a CPU addmm in float32 becomes mm + add (the bias added by the next pointwise
-    kernel), computing x @ w + b as eagerly written; a bfloat16 one, or one with alpha or beta, is left as it is.
+    kernel), computing x @ w + b as eagerly written, and a baddbmm bmm + add; a bfloat16 one, or one with alpha or beta, is left as it is.
     test_user_changes.py's test_auto_compiles_a_long_run... checks that the compiled default runs no addmm."""
     from torch.fx.experimental.proxy_tensor import make_fx
 
@@ -375,6 +375,12 @@ def test_the_compiled_update_adds_each_bias_after_its_product():
         if rewritten:
             assert aten.mm.default in targets(graph_module) and aten.add.Tensor in targets(graph_module)
             assert th.equal(graph_module(x, w, b), (x @ w.t() + b).relu())
+    x, w, b = th.randn(2, 8, 5), th.randn(2, 3, 5), th.randn(2, 1, 3)  # two networks stacked: baddbmm, bmm + add
+    graph_module = make_fx(lambda x, w, b: th.baddbmm(b, x, w.mT).relu(), tracing_mode="fake")(x, w, b)
+    bias_after_product()(graph_module.graph)
+    graph_module.recompile()
+    assert aten.baddbmm.default not in targets(graph_module) and aten.bmm.default in targets(graph_module)
+    assert th.equal(graph_module(x, w, b), (th.bmm(x, w.mT) + b).relu())
     assert inductor_options(None) == {"post_grad_custom_post_pass": bias_after_product()}
     mine = object()
     assert inductor_options({"post_grad_custom_post_pass": mine}) == {"post_grad_custom_post_pass": mine}

@@ -1,8 +1,8 @@
 """What the compiled update asks of Inductor beyond its defaults: a graph pass over the update as traced.
 
 :class:`BiasAfterProduct`: on a CPU, each ``addmm(bias, x, w)`` of the graph (a ``Linear``'s forward, whoever wrote
-it) becomes ``mm(x, w) + bias``, so that the bias is added by the pointwise kernel Inductor generates after the product
-(the ReLU's, the loss's) instead of inside the product. ATen's CPU ``addmm`` first copies the broadcast bias into its
+it) becomes ``mm(x, w) + bias``, and each ``baddbmm`` ``bmm(x, w) + bias``, so that the bias is added by the pointwise
+kernel Inductor generates after the product (the ReLU's, the loss's) instead of inside the product. ATen's CPU ``addmm`` first copies the broadcast bias into its
 output, then calls the BLAS product with ``beta=1``, which reads that output back; Inductor already unfuses it so on a
 GPU (``unfuse_bias_add_to_pointwise``), not on a CPU. The same sum, rounded once more apart: ``x @ w`` is rounded
 before the bias is added, as an eager ``x @ w + b`` is. Measured in ``docs/performance_log.md``.
@@ -23,13 +23,15 @@ def bias_after_product() -> Any:
     from torch._inductor.custom_graph_pass import CustomGraphPass, get_hash_for_files
 
     class BiasAfterProduct(CustomGraphPass):
-        """``addmm(bias, x, w)`` on a CPU, in float32 or float64 with ``alpha = beta = 1``: ``mm(x, w) + bias``.
-        Other dtypes keep ``addmm`` (in bfloat16 its sum is rounded once, the product's would be rounded before)."""
+        """``addmm(bias, x, w)`` on a CPU, in float32 or float64 with ``alpha = beta = 1``: ``mm(x, w) + bias``; and
+        ``baddbmm`` (critics or seeds stacked in one batched product), as ``bmm(x, w) + bias``. Other dtypes keep
+        theirs (in bfloat16 the fused sum is rounded once, the product's would be rounded before)."""
 
         def __call__(self, graph: th.fx.Graph) -> None:
             aten = th.ops.aten
+            products = {aten.addmm.default: aten.mm.default, aten.baddbmm.default: aten.bmm.default}
             for node in list(graph.nodes):
-                if node.op != "call_function" or node.target is not aten.addmm.default:
+                if node.op != "call_function" or node.target not in products:
                     continue
                 val = node.meta.get("val")
                 if (not isinstance(val, th.Tensor) or val.device.type != "cpu"
@@ -38,7 +40,7 @@ def bias_after_product() -> Any:
                     continue
                 bias, x, w = node.args[:3]
                 with graph.inserting_before(node):
-                    product = graph.call_function(aten.mm.default, (x, w))
+                    product = graph.call_function(products[node.target], (x, w))
                     product.meta["val"] = val.new_empty(val.shape)
                     total = graph.call_function(aten.add.Tensor, (product, bias))
                     total.meta["val"] = val
