@@ -354,32 +354,35 @@ def test_compile_update_is_none_true_or_false():
 
 def test_the_compiled_update_adds_each_bias_after_its_product():
     """graph_passes.bias_after_product: a CPU addmm in float32 becomes mm + add (the bias added by the next pointwise
-    kernel), computing x @ w + b as eagerly written, and a baddbmm bmm + add; a bfloat16 one, or one with alpha or beta, is left as it is.
-    test_user_changes.py's test_auto_compiles_a_long_run... checks that the compiled default runs no addmm."""
+    kernel), computing x @ w + b as eagerly written, and a baddbmm bmm + add; a bfloat16 one, or one with alpha or
+    beta, is left as it is. test_user_changes.py's test_auto_compiles_a_long_run... checks that the compiled default
+    runs no addmm."""
     from torch.fx.experimental.proxy_tensor import make_fx
 
     from sb3_td3x.td3x.update_paths.graph_passes import bias_after_product, inductor_options
 
-    def targets(graph_module):
-        return [node.target for node in graph_module.graph.nodes if node.op == "call_function"]
+    def through_the_pass(fn, product, *args):
+        graph_module = make_fx(fn, tracing_mode="fake")(*args)
+        assert product in [node.target for node in graph_module.graph.nodes]  # traced as the fused product
+        bias_after_product()(graph_module.graph)
+        graph_module.recompile()
+        targets = [node.target for node in graph_module.graph.nodes if node.op == "call_function"]
+        return graph_module, targets
 
     aten = th.ops.aten
     for dtype, alpha, rewritten in ((th.float32, 1, True), (th.float64, 1, True), (th.bfloat16, 1, False),
                                     (th.float32, 2, False)):  # fmt: skip
         x, w, b = th.randn(8, 5, dtype=dtype), th.randn(3, 5, dtype=dtype), th.randn(3, dtype=dtype)
-        graph_module = make_fx(lambda x, w, b: th.addmm(b, x, w.t(), alpha=alpha).relu(), tracing_mode="fake")(x, w, b)
-        assert aten.addmm.default in targets(graph_module)
-        bias_after_product()(graph_module.graph)
-        graph_module.recompile()
-        assert (aten.addmm.default not in targets(graph_module)) == rewritten, (dtype, alpha)
+        graph_module, targets = through_the_pass(lambda x, w, b: th.addmm(b, x, w.t(), alpha=alpha).relu(),
+                                                aten.addmm.default, x, w, b)
+        assert (aten.addmm.default not in targets) == rewritten, (dtype, alpha)
         if rewritten:
-            assert aten.mm.default in targets(graph_module) and aten.add.Tensor in targets(graph_module)
+            assert aten.mm.default in targets and aten.add.Tensor in targets
             assert th.equal(graph_module(x, w, b), (x @ w.t() + b).relu())
     x, w, b = th.randn(2, 8, 5), th.randn(2, 3, 5), th.randn(2, 1, 3)  # two networks stacked: baddbmm, bmm + add
-    graph_module = make_fx(lambda x, w, b: th.baddbmm(b, x, w.mT).relu(), tracing_mode="fake")(x, w, b)
-    bias_after_product()(graph_module.graph)
-    graph_module.recompile()
-    assert aten.baddbmm.default not in targets(graph_module) and aten.bmm.default in targets(graph_module)
+    graph_module, targets = through_the_pass(lambda x, w, b: th.baddbmm(b, x, w.mT).relu(), aten.baddbmm.default,
+                                            x, w, b)
+    assert aten.baddbmm.default not in targets and aten.bmm.default in targets
     assert th.equal(graph_module(x, w, b), (th.bmm(x, w.mT) + b).relu())
     assert inductor_options(None) == {"post_grad_custom_post_pass": bias_after_product()}
     mine = object()

@@ -2,10 +2,11 @@
 
 :class:`BiasAfterProduct`: on a CPU, each ``addmm(bias, x, w)`` of the graph (a ``Linear``'s forward, whoever wrote
 it) becomes ``mm(x, w) + bias``, and each ``baddbmm`` ``bmm(x, w) + bias``, so that the bias is added by the pointwise
-kernel Inductor generates after the product (the ReLU's, the loss's) instead of inside the product. ATen's CPU ``addmm`` first copies the broadcast bias into its
-output, then calls the BLAS product with ``beta=1``, which reads that output back; Inductor already unfuses it so on a
-GPU (``unfuse_bias_add_to_pointwise``), not on a CPU. The same sum, rounded once more apart: ``x @ w`` is rounded
-before the bias is added, as an eager ``x @ w + b`` is. Measured in ``docs/performance_log.md``.
+kernel Inductor generates after the product (the ReLU's, the loss's) instead of inside the product. ATen's CPU
+``addmm`` first copies the broadcast bias into its output, then calls the BLAS product with ``beta=1``, which reads
+that output back; Inductor already unfuses it so on a GPU (``unfuse_bias_add_to_pointwise``), not on a CPU. The same
+sum, rounded once more apart: ``x @ w`` is rounded before the bias is added, as an eager ``x @ w + b`` is. Measured in
+``docs/performance_log.md``.
 """
 
 from __future__ import annotations
