@@ -359,12 +359,12 @@ def test_the_compiled_update_adds_each_bias_after_its_product():
     runs no addmm."""
     from torch.fx.experimental.proxy_tensor import make_fx
 
-    from sb3_td3x.td3x.update_paths.graph_passes import bias_after_product, inductor_options
+    from sb3_td3x.td3x.update_paths.graph_passes import bias_after_product, cpu_passes, inductor_options
 
     def through_the_pass(fn, product, *args):
         graph_module = make_fx(fn, tracing_mode="fake")(*args)
         assert product in [node.target for node in graph_module.graph.nodes]  # traced as the fused product
-        bias_after_product()(graph_module.graph)
+        bias_after_product(graph_module.graph)
         graph_module.recompile()
         targets = [node.target for node in graph_module.graph.nodes if node.op == "call_function"]
         return graph_module, targets
@@ -384,7 +384,51 @@ def test_the_compiled_update_adds_each_bias_after_its_product():
                                             x, w, b)
     assert aten.baddbmm.default not in targets and aten.bmm.default in targets
     assert th.equal(graph_module(x, w, b), (th.bmm(x, w.mT) + b).relu())
-    assert inductor_options(None) == {"post_grad_custom_post_pass": bias_after_product()}
+    assert inductor_options(None) == {"post_grad_custom_post_pass": cpu_passes()}
     mine = object()
     assert inductor_options({"post_grad_custom_post_pass": mine}) == {"post_grad_custom_post_pass": mine}
     assert inductor_options({"post_grad_custom_post_pass": None}) == {"post_grad_custom_post_pass": None}  # none
+
+
+def test_the_compiled_update_computes_each_scalar_once(monkeypatch):
+    """graph_passes.scalars_once, on torch's own Adam step as the compiled update traces it (functional adam, one
+    tensor at a time, the step count a tensor): each 0-d value a pointwise op computes (the bias corrections) reaches
+    the parameter-sized ops through an as_strided of its own, which Inductor computes into a buffer once; 0-d ops that
+    read it stay as they were, and the step computes what it computed before. Shown to fail with the identity given
+    another shape (the as_strided's stride)."""
+    from torch.fx.experimental.proxy_tensor import make_fx
+    from torch.optim.adam import adam
+
+    from sb3_td3x.td3x.update_paths.graph_passes import cpu_passes, scalars_once
+
+    def adam_step(param, grad, exp_avg, exp_avg_sq, step, lr):
+        param, exp_avg, exp_avg_sq, step = param.clone(), exp_avg.clone(), exp_avg_sq.clone(), step.clone()
+        adam([param], [grad], [exp_avg], [exp_avg_sq], [], [step], foreach=False, capturable=True, lr=lr, beta1=0.9,
+             beta2=0.999, eps=1e-8, weight_decay=0.0, amsgrad=False, maximize=False)  # fmt: skip
+        return param, exp_avg, exp_avg_sq, step
+
+    th.manual_seed(0)
+    args = (th.randn(30, 4), th.randn(30, 4), th.randn(30, 4), th.rand(30, 4), th.tensor(7.0), th.tensor(1e-3))
+    with monkeypatch.context() as patched:  # as Dynamo traces it: capturable on a CPU is for compiled steps only
+        patched.setattr(th.compiler, "is_compiling", lambda: True)
+        graph_module = make_fx(adam_step, tracing_mode="fake")(*args)
+        traced = make_fx(adam_step, tracing_mode="fake")(*args)
+        before = graph_module(*args)
+    scalars_once(graph_module.graph)
+    graph_module.recompile()
+    nodes = [node for node in graph_module.graph.nodes if node.op == "call_function"]
+    once = [node for node in nodes if node.target == th.ops.aten.as_strided.default]
+    assert once, "no scalar was computed once"
+    for node in nodes:
+        val = node.meta["val"]
+        for arg in node.all_input_nodes:
+            if isinstance(val, th.Tensor) and val.dim() > 0 and arg.op == "call_function" and arg.meta["val"].dim() == 0:
+                assert arg in once, f"{node} reads the 0-d {arg} inline"  # a parameter-sized op reads only buffers
+    assert len(once) == 2  # Adam's: -sqrt(1 - beta2^t) * lr / (1 - beta1^t), and eps over its step size
+    for got, expected in zip(graph_module(*args), before):
+        assert th.equal(got, expected)
+    # Through Inductor (its lowering of the as_strided): the same step as Inductor without the pass.
+    with_pass, without = (th.compile(traced, backend="inductor", options={"post_grad_custom_post_pass": post})(*args)
+                          for post in (cpu_passes(), None))  # fmt: skip
+    for got, expected in zip(with_pass, without):
+        assert th.equal(got, expected)

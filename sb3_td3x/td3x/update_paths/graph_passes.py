@@ -1,12 +1,19 @@
-"""What the compiled update asks of Inductor beyond its defaults: a graph pass over the update as traced.
+"""What the compiled update asks of Inductor beyond its defaults: two rewrites of the update's graph as traced, on a
+CPU (:func:`cpu_passes`, Inductor's last post-grad pass), over whatever hooks, networks and optimizer steps it holds.
 
-:class:`BiasAfterProduct`: on a CPU, each ``addmm(bias, x, w)`` of the graph (a ``Linear``'s forward, whoever wrote
-it) becomes ``mm(x, w) + bias``, and each ``baddbmm`` ``bmm(x, w) + bias``, so that the bias is added by the pointwise
-kernel Inductor generates after the product (the ReLU's, the loss's) instead of inside the product. ATen's CPU
-``addmm`` first copies the broadcast bias into its output, then calls the BLAS product with ``beta=1``, which reads
-that output back; Inductor already unfuses it so on a GPU (``unfuse_bias_add_to_pointwise``), not on a CPU. The same
-sum, rounded once more apart: ``x @ w`` is rounded before the bias is added, as an eager ``x @ w + b`` is. Measured in
-``docs/performance_log.md``.
+- :func:`bias_after_product`: each ``addmm(bias, x, w)`` (a ``Linear``'s forward, whoever wrote it) becomes
+  ``mm(x, w) + bias``, and each ``baddbmm`` ``bmm(x, w) + bias``, so that the bias is added by the pointwise kernel
+  Inductor generates after the product (the ReLU's, the loss's) instead of inside the product. ATen's CPU ``addmm``
+  first copies the broadcast bias into its output, then calls the BLAS product with ``beta=1``, which reads that
+  output back; Inductor already unfuses it so on a GPU (``unfuse_bias_add_to_pointwise``), not on a CPU. The same sum,
+  rounded once more apart: ``x @ w`` is rounded before the bias is added, as an eager ``x @ w + b`` is.
+- :func:`scalars_once`: each single number the graph computes (Adam's bias corrections, from the step count) and an
+  op over a whole tensor reads is computed once, into a buffer of its own. Inductor otherwise inlines it into the
+  loop of its reader, and its generated C++ computes it again for every 16 elements: two ``std::pow`` per vector
+  step of each parameter's Adam update (the compiler cannot hoist them: the loop's stores may alias the step count it
+  reads). The same numbers, computed once.
+
+Measured in ``docs/performance_log.md``.
 """
 
 from __future__ import annotations
@@ -17,50 +24,80 @@ from typing import Any
 import torch as th
 
 
+def bias_after_product(graph: th.fx.Graph) -> None:
+    """``addmm(bias, x, w)`` on a CPU, in float32 or float64 with ``alpha = beta = 1``: ``mm(x, w) + bias``; and
+    ``baddbmm`` (critics or seeds stacked in one batched product), as ``bmm(x, w) + bias``. Other dtypes keep theirs
+    (in bfloat16 the fused sum is rounded once, the product's would be rounded before)."""
+    aten = th.ops.aten
+    products = {aten.addmm.default: aten.mm.default, aten.baddbmm.default: aten.bmm.default}
+    for node in list(graph.nodes):
+        if node.op != "call_function" or node.target not in products:
+            continue
+        val = node.meta.get("val")
+        if (not isinstance(val, th.Tensor) or val.device.type != "cpu" or val.dtype not in (th.float32, th.float64)
+                or node.kwargs.get("alpha", 1) != 1 or node.kwargs.get("beta", 1) != 1):  # fmt: skip
+            continue
+        bias, x, w = node.args[:3]
+        with graph.inserting_before(node):
+            product = graph.call_function(products[node.target], (x, w))
+            product.meta["val"] = val.new_empty(val.shape)
+            total = graph.call_function(aten.add.Tensor, (product, bias))
+            total.meta["val"] = val
+        node.replace_all_uses_with(total)
+        graph.erase_node(node)
+
+
+def scalars_once(graph: th.fx.Graph) -> None:
+    """Each 0-d CPU tensor that a pointwise op computes and an op over a tensor of one dimension or more reads, read
+    by it through ``as_strided(value, [], [])``: the identity on a 0-d tensor, which Inductor lowers by computing the
+    value into a buffer (it realizes an ``as_strided``'s input) that the reader's loop loads."""
+    for node in list(graph.nodes):
+        val = node.meta.get("val")
+        if (node.op != "call_function" or not isinstance(node.target, th._ops.OpOverload)
+                or th.Tag.pointwise not in node.target.tags
+                or not isinstance(val, th.Tensor) or val.dim() != 0 or val.device.type != "cpu"):  # fmt: skip
+            continue
+        readers = [user for user in node.users if _has_dimensions(user.meta.get("val"))]
+        if not readers:
+            continue
+        with graph.inserting_after(node):
+            computed = graph.call_function(th.ops.aten.as_strided.default, (node, [], []))
+            computed.meta["val"] = val
+        for user in readers:
+            user.replace_input_with(node, computed)
+
+
+def _has_dimensions(val: Any) -> bool:
+    """Whether an op's result (a tensor, or a list of them) has a tensor of one dimension or more."""
+    if isinstance(val, (list, tuple)):
+        return any(_has_dimensions(v) for v in val)
+    return isinstance(val, th.Tensor) and val.dim() > 0
+
+
 @functools.cache
-def bias_after_product() -> Any:
-    """The pass (one instance: Inductor's cache keys on its :meth:`uuid`); imported with Inductor, at the first
-    compiled step."""
+def cpu_passes() -> Any:
+    """Both rewrites as one Inductor custom pass (one instance: Inductor's cache keys on its :meth:`uuid`, the hash of
+    this file); imported with Inductor, at the first compiled step."""
     from torch._inductor.custom_graph_pass import CustomGraphPass, get_hash_for_files
 
-    class BiasAfterProduct(CustomGraphPass):
-        """``addmm(bias, x, w)`` on a CPU, in float32 or float64 with ``alpha = beta = 1``: ``mm(x, w) + bias``; and
-        ``baddbmm`` (critics or seeds stacked in one batched product), as ``bmm(x, w) + bias``. Other dtypes keep
-        theirs (in bfloat16 the fused sum is rounded once, the product's would be rounded before)."""
-
+    class CpuPasses(CustomGraphPass):
         def __call__(self, graph: th.fx.Graph) -> None:
-            aten = th.ops.aten
-            products = {aten.addmm.default: aten.mm.default, aten.baddbmm.default: aten.bmm.default}
-            for node in list(graph.nodes):
-                if node.op != "call_function" or node.target not in products:
-                    continue
-                val = node.meta.get("val")
-                if (not isinstance(val, th.Tensor) or val.device.type != "cpu"
-                        or val.dtype not in (th.float32, th.float64)
-                        or node.kwargs.get("alpha", 1) != 1 or node.kwargs.get("beta", 1) != 1):  # fmt: skip
-                    continue
-                bias, x, w = node.args[:3]
-                with graph.inserting_before(node):
-                    product = graph.call_function(products[node.target], (x, w))
-                    product.meta["val"] = val.new_empty(val.shape)
-                    total = graph.call_function(aten.add.Tensor, (product, bias))
-                    total.meta["val"] = val
-                node.replace_all_uses_with(total)
-                graph.erase_node(node)
+            bias_after_product(graph)
+            scalars_once(graph)
 
         def uuid(self) -> bytes:
             return get_hash_for_files((__file__,))
 
-    return BiasAfterProduct()
+    return CpuPasses()
 
 
 def inductor_options(options: dict[str, Any] | None) -> dict[str, Any] | None:
-    """``torch.compile``'s ``options`` for the update: :func:`bias_after_product` as Inductor's last post-grad pass,
-    unless ``options`` (:attr:`CompiledUpdate.options`) or Inductor's global config already name a pass of their own,
-    which then runs alone."""
+    """``torch.compile``'s ``options`` for the update: :func:`cpu_passes` as Inductor's last post-grad pass, unless
+    ``options`` (:attr:`CompiledUpdate.options`) or Inductor's global config already name a pass of their own, which
+    then runs alone."""
     from torch._inductor import config as inductor_config
 
     key = "post_grad_custom_post_pass"
     if (options or {}).get(key) is not None or getattr(inductor_config, key) is not None:
         return options
-    return {key: bias_after_product(), **(options or {})}
+    return {key: cpu_passes(), **(options or {})}
