@@ -24,8 +24,8 @@ The cases:
   (TD3X's default) a stacked bias of 2 by 300 leaves the separate ones by one rounding (1e-10) within a few gradient
   steps: the kernel takes a tensor's last ``numel % 8`` elements through a scalar tail that rounds otherwise than its
   vector body, and stacking moves the separate biases' tails into the body;
-- ``no_bias_pass``: the stock TD3X compiled without ``graph_passes``'s bias-after-product pass (opt-in): what the pass
-  gains;
+- ``no_bias_pass``: the stock TD3X compiled without ``graph_passes``'s pass (opt-in): what it gains (each bias after
+  its product; since ``231eb66`` also Adam's scalars computed once);
 - ``td3_lap``, ``td3_nstep``, ``td3_layernorm``, ``td3_c51``: the variants.
 
 Prints each case's end-to-end steps/s (collection and training), its cores used, its update path, and the median of
@@ -133,7 +133,8 @@ class StackedCritic(TD3XCritic):
 
 class NoBiasPassTD3(TD3X):
     """The stock TD3X, its update compiled without Inductor's post-grad pass of ``graph_passes`` (each ``addmm`` left
-    as it is): ``CompiledUpdate.options`` set for the length of each ``train()`` call, where the update is compiled."""
+    as it is, Adam's scalars inlined): ``CompiledUpdate.options`` set for the length of each ``train()`` call, where
+    the update is compiled."""
 
     def train(self, *args, **kwargs):
         saved = CompiledUpdate.options

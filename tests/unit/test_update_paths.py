@@ -2,6 +2,7 @@
 circle."""
 
 import ast
+import sys
 from pathlib import Path
 
 import gymnasium as gym
@@ -388,6 +389,12 @@ def test_the_compiled_update_adds_each_bias_after_its_product():
     mine = object()
     assert inductor_options({"post_grad_custom_post_pass": mine}) == {"post_grad_custom_post_pass": mine}
     assert inductor_options({"post_grad_custom_post_pass": None}) == {"post_grad_custom_post_pass": None}  # none
+    cpu_passes.cache_clear()  # a torch whose Inductor has no custom passes: compiled without them, not a crash
+    with pytest.MonkeyPatch.context() as patched:
+        patched.setitem(sys.modules, "torch._inductor.custom_graph_pass", None)
+        assert cpu_passes() is None and inductor_options(None) is None and inductor_options({"a": 1}) == {"a": 1}
+    cpu_passes.cache_clear()
+    assert inductor_options(None) == {"post_grad_custom_post_pass": cpu_passes()}
 
 
 def test_the_compiled_update_computes_each_scalar_once(monkeypatch):

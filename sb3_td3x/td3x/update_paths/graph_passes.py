@@ -77,8 +77,12 @@ def _has_dimensions(val: Any) -> bool:
 @functools.cache
 def cpu_passes() -> Any:
     """Both rewrites as one Inductor custom pass (one instance: Inductor's cache keys on its :meth:`uuid`, the hash of
-    this file); imported with Inductor, at the first compiled step."""
-    from torch._inductor.custom_graph_pass import CustomGraphPass, get_hash_for_files
+    this file); imported with Inductor, at the first compiled step. ``None`` with a torch whose Inductor has no
+    ``custom_graph_pass`` module (older than the 2.13 this is measured on): the update is then compiled without them."""
+    try:
+        from torch._inductor.custom_graph_pass import CustomGraphPass, get_hash_for_files
+    except ImportError:
+        return None
 
     class CpuPasses(CustomGraphPass):
         def __call__(self, graph: th.fx.Graph) -> None:
@@ -98,6 +102,6 @@ def inductor_options(options: dict[str, Any] | None) -> dict[str, Any] | None:
     from torch._inductor import config as inductor_config
 
     key = "post_grad_custom_post_pass"
-    if (options or {}).get(key) is not None or getattr(inductor_config, key) is not None:
+    if (options or {}).get(key) is not None or getattr(inductor_config, key, None) is not None or cpu_passes() is None:
         return options
     return {key: cpu_passes(), **(options or {})}
