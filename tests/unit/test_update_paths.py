@@ -401,8 +401,8 @@ def test_the_compiled_update_computes_each_scalar_once(monkeypatch):
     """graph_passes.scalars_once, on torch's own Adam step as the compiled update traces it (functional adam, one
     tensor at a time, the step count a tensor): each 0-d value a pointwise op computes (the bias corrections) reaches
     the parameter-sized ops through an as_strided of its own, which Inductor computes into a buffer once; 0-d ops that
-    read it stay as they were, and the step computes what it computed before. Shown to fail with the identity given
-    another shape (the as_strided's stride)."""
+    read it stay as they were, and the step computes what it computed before, eagerly and through Inductor. Shown to
+    fail with the scalar's input read in the scalar's place."""
     from torch.fx.experimental.proxy_tensor import make_fx
     from torch.optim.adam import adam
 
@@ -419,7 +419,7 @@ def test_the_compiled_update_computes_each_scalar_once(monkeypatch):
     with monkeypatch.context() as patched:  # as Dynamo traces it: capturable on a CPU is for compiled steps only
         patched.setattr(th.compiler, "is_compiling", lambda: True)
         graph_module = make_fx(adam_step, tracing_mode="fake")(*args)
-        traced = make_fx(adam_step, tracing_mode="fake")(*args)
+        traced = [make_fx(adam_step, tracing_mode="fake")(*args) for _ in range(2)]  # two code objects: two compilations
         before = graph_module(*args)
     scalars_once(graph_module.graph)
     graph_module.recompile()
@@ -435,7 +435,7 @@ def test_the_compiled_update_computes_each_scalar_once(monkeypatch):
     for got, expected in zip(graph_module(*args), before):
         assert th.equal(got, expected)
     # Through Inductor (its lowering of the as_strided): the same step as Inductor without the pass.
-    with_pass, without = (th.compile(traced, backend="inductor", options={"post_grad_custom_post_pass": post})(*args)
-                          for post in (cpu_passes(), None))  # fmt: skip
+    with_pass, without = (th.compile(module, backend="inductor", options={"post_grad_custom_post_pass": post})(*args)
+                          for module, post in zip(traced, (cpu_passes(), None)))  # fmt: skip
     for got, expected in zip(with_pass, without):
         assert th.equal(got, expected)
