@@ -418,8 +418,8 @@ def test_the_compiled_update_computes_each_scalar_once(monkeypatch):
     args = (th.randn(30, 4), th.randn(30, 4), th.randn(30, 4), th.rand(30, 4), th.tensor(7.0), th.tensor(1e-3))
     with monkeypatch.context() as patched:  # as Dynamo traces it: capturable on a CPU is for compiled steps only
         patched.setattr(th.compiler, "is_compiling", lambda: True)
-        graph_module = make_fx(adam_step, tracing_mode="fake")(*args)
-        traced = [make_fx(adam_step, tracing_mode="fake")(*args) for _ in range(2)]  # two code objects: two compilations
+        # Three traces: one rewritten here, two compiled below (two code objects: two compilations).
+        graph_module, *traced = (make_fx(adam_step, tracing_mode="fake")(*args) for _ in range(3))
         before = graph_module(*args)
     scalars_once(graph_module.graph)
     graph_module.recompile()

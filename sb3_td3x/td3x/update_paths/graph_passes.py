@@ -101,7 +101,7 @@ def inductor_options(options: dict[str, Any] | None) -> dict[str, Any] | None:
     then runs alone."""
     from torch._inductor import config as inductor_config
 
-    key = "post_grad_custom_post_pass"
-    if (options or {}).get(key) is not None or getattr(inductor_config, key, None) is not None or cpu_passes() is None:
+    key, passes = "post_grad_custom_post_pass", cpu_passes()
+    if (options or {}).get(key) is not None or getattr(inductor_config, key, None) is not None or passes is None:
         return options
-    return {key: cpu_passes(), **(options or {})}
+    return {key: passes, **(options or {})}
