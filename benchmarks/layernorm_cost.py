@@ -4,7 +4,7 @@ long run (the hooks compiled as written) and for SB3's ``TD3`` with the same cri
 alternated in one process after 1,500 environment steps (``throughput.py``'s settings: 400-300, lr 1e-3).
 
     python benchmarks/layernorm_cost.py                      # Hopper-v5, batch 100, 2 threads
-    python benchmarks/layernorm_cost.py --profile            # and the operators of one chunk each, by self time
+    python benchmarks/layernorm_cost.py --profile            # and one chunk each profiled: operators, where time goes
     TORCHINDUCTOR_FORCE_DISABLE_CACHES=1 python benchmarks/layernorm_cost.py --aten-layernorm
 
 ``--aten-layernorm`` keeps ATen's own LayerNorm kernels (forward and backward) inside the compiled graph in place of
@@ -53,6 +53,22 @@ def aten_layernorm_in_compiled_graphs() -> None:
     lowering.make_fallback(aten.native_layer_norm_backward, warn=False)
 
 
+#: Where ``--profile`` puts each profiler row (Inductor's kernels show by name under ``cpp.enable_kernel_profile``).
+PARTS = ("products (ATen)", "Inductor's kernels", "compiled graphs' Python wrappers", "Dynamo's guards", "the rest")
+
+
+def where(key: str) -> str:
+    if key in ("aten::mm", "aten::addmm", "aten::bmm", "aten::baddbmm"):
+        return PARTS[0]
+    if key.startswith("graph_") and "_cpp_fused" in key:
+        return PARTS[1]
+    if "CompiledFxGraph" in key:
+        return PARTS[2]
+    if "TorchDynamo Cache Lookup" in key:
+        return PARTS[3]
+    return PARTS[4]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--env", default="Hopper-v5")
@@ -65,6 +81,10 @@ def main() -> None:
     th.set_num_threads(args.threads)
     if args.aten_layernorm:
         aten_layernorm_in_compiled_graphs()
+    if args.profile:  # each Inductor kernel a row of the profile (part of the cache key: compiles anew)
+        from torch._inductor import config as inductor_config
+
+        inductor_config.cpp.enable_kernel_profile = True
 
     models = {
         "TD3X": build_model(TD3X, args.env, args.batch_size),
@@ -90,11 +110,21 @@ def main() -> None:
     if args.profile:
         from torch.profiler import ProfilerActivity, profile
 
+        shares = {}
         for name in ("TD3X", "TD3X, LayerNorm critics"):
             with profile(activities=[ProfilerActivity.CPU]) as prof:
                 models[name].train(gradient_steps=100, batch_size=args.batch_size)
             print(f"{name}: 100 gradient steps")
             print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=12))
+            shares[name] = {}
+            for event in prof.key_averages():
+                part = where(event.key)
+                shares[name][part] = shares[name].get(part, 0.0) + event.self_cpu_time_total / 100
+        print("us of self time a gradient step (profiled), by where it goes")
+        print(f"  {'':32s} {'stock':>8s} {'LayerNorm':>10s} {'added':>7s}")
+        for part in PARTS:
+            stock, layer_norm = shares["TD3X"].get(part, 0.0), shares["TD3X, LayerNorm critics"].get(part, 0.0)
+            print(f"  {part:32s} {stock:8.1f} {layer_norm:10.1f} {layer_norm - stock:+7.1f}")
 
 
 if __name__ == "__main__":

@@ -397,6 +397,46 @@ def test_the_compiled_update_adds_each_bias_after_its_product():
     assert inductor_options(None) == {"post_grad_custom_post_pass": cpu_passes()}
 
 
+def test_the_compiled_update_computes_only_the_part_of_a_product_it_reads():
+    """graph_passes.products_read_in_part: a product read only through a slice of its columns (the actor's gradient
+    through the critic's first layer keeps the action's columns of the concatenated input) or of its rows computes
+    that part alone, with the same numbers to rounding; a product read twice, or by a strided slice, or one whose
+    left-out part is small (Hopper-v5's), is left whole."""
+    from torch.fx.experimental.proxy_tensor import make_fx
+
+    from sb3_td3x.td3x.update_paths.graph_passes import products_read_in_part
+
+    aten = th.ops.aten
+    th.manual_seed(0)
+    grad, weight = th.randn(256, 400), th.randn(400, 113)  # Ant-v5's first layer: 105 observation, 8 action columns
+    hopper = th.randn(100, 400), th.randn(400, 14)  # 11 and 3: 440,000 multiply-adds left out, too few to pay
+    for fn, rewritten, args in ((lambda g, w: th.mm(g, w)[:, 105:], True, (grad, weight)),
+                                (lambda g, w: th.mm(g, w)[4:9], True, (grad, weight)),
+                                (lambda g, w: th.mm(g, w)[:, -8:], True, (grad, weight)),
+                                (lambda g, w: th.mm(g, w)[:, ::2], False, (grad, weight)),
+                                (lambda g, w: (lambda p: (p[:, 105:], p.sum()))(th.mm(g, w)), False, (grad, weight)),
+                                (lambda g, w: th.mm(g, w)[:, 11:], False, hopper)):  # fmt: skip
+        graph_module = make_fx(fn, tracing_mode="fake")(*args)
+        products = [node for node in graph_module.graph.nodes if node.target == aten.mm.default]
+        whole = {tuple(node.meta["val"].shape) for node in products}
+        products_read_in_part(graph_module.graph)
+        graph_module.graph.lint()
+        graph_module.recompile()
+        after = {tuple(node.meta["val"].shape) for node in graph_module.graph.nodes if node.target == aten.mm.default}
+        assert (after != whole) == rewritten, after
+        expected = fn(*args)
+        got = graph_module(*args)
+        for g, e in zip(got if isinstance(got, tuple) else (got,), expected if isinstance(expected, tuple) else (expected,)):
+            th.testing.assert_close(g, e)  # the same sums (the BLAS may block them otherwise)
+    # Through Inductor, with the three rewrites: as compiled without them.
+    from sb3_td3x.td3x.update_paths.graph_passes import cpu_passes
+
+    with_pass, without = (th.compile(lambda g, w: th.mm(g, w)[:, 105:].relu(), backend="inductor",
+                                     options={"post_grad_custom_post_pass": post})(grad, weight)
+                          for post in (cpu_passes(), None))  # fmt: skip
+    th.testing.assert_close(with_pass, without)
+
+
 def test_the_compiled_update_computes_each_scalar_once(monkeypatch):
     """graph_passes.scalars_once, on torch's own Adam step as the compiled update traces it (functional adam, one
     tensor at a time, the step count a tensor): each 0-d value a pointwise op computes (the bias corrections) reaches
