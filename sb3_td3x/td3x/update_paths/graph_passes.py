@@ -78,11 +78,15 @@ LEFT_OUT_AT_LEAST = 1_000_000
 
 def products_read_in_part(graph: th.fx.Graph) -> None:
     """``mm(x, w)[:, a:b]`` becomes ``mm(x, w[:, a:b])``, and ``mm(x, w)[a:b]`` ``mm(x[a:b], w)``, where the slice (of
-    step 1) is the product's only reader and what it leaves out is worth it (:data:`LEFT_OUT_AT_LEAST`). Each element
-    of the result is the same sum of the same products; the BLAS may block it otherwise, so the rounding can differ."""
+    step 1) is the product's only reader and what it leaves out is worth it (:data:`LEFT_OUT_AT_LEAST`); on a CPU, in
+    float32 or float64 (as measured). Each element of the result is the same sum of the same products; the BLAS may
+    block it otherwise, so the rounding can differ."""
     aten = th.ops.aten
     for node in list(graph.nodes):
-        if node.op != "call_function" or node.target is not aten.mm.default or len(node.users) != 1:
+        val = node.meta.get("val")
+        if (node.op != "call_function" or node.target is not aten.mm.default or len(node.users) != 1
+                or not isinstance(val, th.Tensor) or val.device.type != "cpu"
+                or val.dtype not in (th.float32, th.float64)):  # fmt: skip
             continue
         (part,) = node.users
         if part.target is not aten.slice.Tensor or part.kwargs or len(part.args) not in (4, 5):
@@ -92,8 +96,8 @@ def products_read_in_part(graph: th.fx.Graph) -> None:
             continue
         x, w = node.args
         sliced, operand_dim = (x, 0) if dim in (0, -2) else (w, 1)
-        (rows, inner), kept = x.meta["val"].shape, part.meta["val"].shape
-        if rows * inner * w.meta["val"].shape[1] - kept[0] * inner * kept[1] < LEFT_OUT_AT_LEAST:
+        (rows, inner), (kept_rows, kept_columns) = x.meta["val"].shape, part.meta["val"].shape
+        if (rows * val.shape[1] - kept_rows * kept_columns) * inner < LEFT_OUT_AT_LEAST:
             continue
         with graph.inserting_before(node):
             kept = graph.call_function(aten.slice.Tensor, (sliced, operand_dim, start, end))
