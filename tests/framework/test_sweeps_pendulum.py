@@ -37,8 +37,8 @@ pytestmark = [
 ]
 
 
-def sweep_command(*args: str) -> list[str]:
-    return [sys.executable, "-m", "sb3_td3x.sweeps", str(SMOKE), *args]
+def sweep_command(*args: str, spec: Path = SMOKE) -> list[str]:
+    return [sys.executable, "-m", "sb3_td3x.sweeps", str(spec), *args]
 
 
 def _env() -> dict[str, str]:
@@ -49,10 +49,23 @@ def load(storage: str, study_name: str = STUDY) -> list[optuna.trial.FrozenTrial
     return optuna.load_study(study_name=study_name, storage=storage).get_trials()
 
 
-def sweep_in_process(capsys, *args: str) -> tuple[int, str]:
+def sweep_in_process(capsys, *args: str, spec: Path = SMOKE) -> tuple[int, str]:
     """``python -m sb3_td3x.sweeps <smoke file> <args>`` without paying for a new interpreter each time."""
-    code = main([str(SMOKE), *args])
+    code = main([str(spec), *args])
     return code, capsys.readouterr().err
+
+
+def slower_smoke(tmp_path: Path) -> Path:
+    """The smoke search with 1,000 steps between evaluations instead of 150: a test that interrupts a trial after its
+    first evaluation needs the trial still running when the signal lands (150 steps of these tiny networks take well
+    under the 0.2 s the test polls at on a fast CPU, so the trial could finish first)."""
+    spec = yaml.safe_load(SMOKE.read_text())
+    longer = {"total_timesteps": "4000", "eval.freq": "1000"}
+    spec["overrides"] = [f"{key}={longer[key]}" if (key := o.split("=")[0]) in longer else o for o in spec["overrides"]]
+    spec["pruner"].update(min_resource=1000, max_resource=4000)
+    path = tmp_path / "pendulum_smoke_slower.yaml"
+    path.write_text(yaml.safe_dump(spec))
+    return path
 
 
 def test_sweep_prunes_persists_and_grows(tmp_path, capsys):
@@ -124,8 +137,9 @@ def test_ctrl_c_leaves_the_study_consistent_and_the_same_command_continues(tmp_p
     out = tmp_path / "runs"
     storage = f"sqlite:///{out / STUDY / 'optuna.db'}"
     args = ("--output-dir", str(out), "--n-trials", "1")
+    spec = slower_smoke(tmp_path)
     proc = subprocess.Popen(
-        sweep_command(*args), cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env()
+        sweep_command(*args, spec=spec), cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env()
     )
     try:
         _wait_until(lambda: _a_trial_has_evaluated(storage), proc, timeout=120)
@@ -143,7 +157,7 @@ def test_ctrl_c_leaves_the_study_consistent_and_the_same_command_continues(tmp_p
     assert queued.state == TrialState.WAITING and queued.params == interrupted.params
     assert RetryHeartbeatStaleTrialCallback.retried_trial_number(queued) == 0
 
-    code, err = sweep_in_process(capsys, *args)  # the same command again
+    code, err = sweep_in_process(capsys, *args, spec=spec)  # the same command again
     assert code == 0, err
     trials = load(storage)
     assert [t.number for t in trials] == [0, 1]  # 0 interrupted, 1 its copy: the budget of one trial is spent
@@ -155,7 +169,7 @@ def test_ctrl_c_leaves_the_study_consistent_and_the_same_command_continues(tmp_p
     assert min(resumed.intermediate_values) > max(interrupted.intermediate_values)
     assert resumed.user_attrs["fail_reason"] is None, "the copy does not inherit its original's reason"
     evaluations = (Path(interrupted.user_attrs["run_dir"]) / "evaluations.csv").read_text().splitlines()[1:]
-    assert [int(row.split(",")[0]) for row in evaluations] == [150, 300, 450, 600]
+    assert [int(row.split(",")[0]) for row in evaluations] == [1000, 2000, 3000, 4000]
     summary = (out / STUDY / "summary.txt").read_text()
     assert "1 COMPLETE, 1 FAIL" in summary and "interrupted by SIGINT" in summary
     best_overrides = (out / STUDY / "best_overrides.txt").read_text()
