@@ -37,8 +37,7 @@ def bias_after_product(graph: th.fx.Graph) -> None:
         if node.op != "call_function" or node.target not in products:
             continue
         val = node.meta.get("val")
-        if (not isinstance(val, th.Tensor) or val.device.type != "cpu" or val.dtype not in (th.float32, th.float64)
-                or node.kwargs.get("alpha", 1) != 1 or node.kwargs.get("beta", 1) != 1):  # fmt: skip
+        if not _cpu_float(val) or node.kwargs.get("alpha", 1) != 1 or node.kwargs.get("beta", 1) != 1:
             continue
         bias, x, w = node.args[:3]
         with graph.inserting_before(node):
@@ -84,9 +83,7 @@ def products_read_in_part(graph: th.fx.Graph) -> None:
     aten = th.ops.aten
     for node in list(graph.nodes):
         val = node.meta.get("val")
-        if (node.op != "call_function" or node.target is not aten.mm.default or len(node.users) != 1
-                or not isinstance(val, th.Tensor) or val.device.type != "cpu"
-                or val.dtype not in (th.float32, th.float64)):  # fmt: skip
+        if node.op != "call_function" or node.target is not aten.mm.default or len(node.users) != 1 or not _cpu_float(val):
             continue
         (part,) = node.users
         if part.target is not aten.slice.Tensor or part.kwargs or len(part.args) not in (4, 5):
@@ -107,6 +104,11 @@ def products_read_in_part(graph: th.fx.Graph) -> None:
         part.replace_all_uses_with(product)
         graph.erase_node(part)
         graph.erase_node(node)
+
+
+def _cpu_float(val: Any) -> bool:
+    """Whether an op's result is a float32 or float64 tensor on a CPU: where the product rewrites were measured."""
+    return isinstance(val, th.Tensor) and val.device.type == "cpu" and val.dtype in (th.float32, th.float64)
 
 
 def _has_dimensions(val: Any) -> bool:
