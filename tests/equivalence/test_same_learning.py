@@ -105,8 +105,6 @@ def test_the_compiled_update_with_products_computed_in_part_matches_sb3_td3(monk
     read through a slice (on Pendulum-v1, the actor's gradient through the critic's first layer keeps the action's
     column of 4), and the compiled default still ends within the compiled case's tolerance of SB3's TD3. Compiled anew:
     Inductor's cache keys on the pass file, not on the bound."""
-    from torch._inductor import config as inductor_config
-
     from sb3_td3x.td3x.update_paths import graph_passes
 
     rewritten = []
@@ -120,10 +118,10 @@ def test_the_compiled_update_with_products_computed_in_part_matches_sb3_td3(monk
 
     monkeypatch.setattr(graph_passes, "LEFT_OUT_AT_LEAST", 0)
     monkeypatch.setattr(graph_passes, "products_read_in_part", counted)
-    monkeypatch.setattr(inductor_config, "force_disable_caches", True)
     monkeypatch.setattr(TD3X, "compile_auto_min_steps", 0)
     expected = sb3_weights(1)
-    td3x = td3x_trained(1)
+    with th.compiler.config.patch(force_disable_caches=True):  # (monkeypatch's undo would delete the setting)
+        td3x = td3x_trained(1)
     assert td3x.update_path == "compiled" and any(rewritten), rewritten
     for name, got in td3x.policy.state_dict().items():
         th.testing.assert_close(got, expected[name], rtol=1e-3, atol=1e-3, msg=name)
