@@ -15,6 +15,10 @@
 # sb3_seeds:  16 separate SB3 processes on the GPU.
 # seeds16_sbx: the 16-seed table with SBX beside (MPS on and off), then tests/gpu.
 # nomps_probe: 16 TD3X processes without MPS, three updates (why SBX's led there), and SBX's beside.
+# first, last: a session's measure at its start and at its end within its 15 minutes (two calls: `first` at the start,
+#             about 4 minutes with the machine's start; `last` after the session's changes, about 9): Ant-v5's
+#             one-seed table (TD3X's default of a long run against SB3's and SBX's TD3), and in `last` the whole suite
+#             first (cut at 280 s; each test's outcome named as it ends). The 16-seed table does not fit beside them.
 # Durations on an H100 (2026-11-27), for planning a call: 16 SBX processes about 150 s per measurement (16 JAX starts
 # and compilations), 16 TD3X processes about 60 s, one SB3 process about 20 s, a fresh machine's start about 70 s; one
 # SeedBatch of 16 seeds did not finish within 112 s. So one call holds the 16-seed table with SBX (seeds16_sbx) or
@@ -76,7 +80,25 @@ tables() {
   tail -n 30 "$OUT"/throughput.txt; grep -E "N=|rc=" "$OUT"/seeds16_mps.txt
 }
 
-if [ "$part" = session ]; then
+# `first` and `last`'s table, about 150 s: Ant-v5, one seed, TD3X's default of a long run, SB3's and SBX's TD3.
+one_seed_table() {  # $1: first or last, in the file names
+  timeout 150 python3 benchmarks/throughput.py --env Ant-v5 --chunks 2 --chunk-steps 1000 --warmup 1500 \
+    --json "$OUT/throughput_$1.json" > "$OUT/throughput_$1.txt" 2>&1
+  echo "throughput Ant-v5 ($1) rc=$? at ${SECONDS}s" >> "$OUT/throughput_$1.txt"
+  tail -n 20 "$OUT/throughput_$1.txt"
+}
+
+if [ "$part" = first ]; then
+  one_seed_table first
+elif [ "$part" = last ]; then
+  # Cut at 280 s (pytest-xdist prints no summary when stopped): -v names each test's outcome as it ends, counted here.
+  timeout -k 10 280 python3 -m pytest -v -p no:cacheprovider -n 14 --timeout 200 -rfEs --durations=10 \
+    -k "not wandb" tests > "$OUT/suite.txt" 2>&1
+  echo "suite rc=$? at ${SECONDS}s; by outcome: $(grep -oE '\] (PASSED|FAILED|SKIPPED|ERROR)' "$OUT/suite.txt" \
+    | sort | uniq -c | tr -s ' \n' ' ')" >> "$OUT/suite.txt"
+  grep -E "FAILED|ERROR|rc=" "$OUT/suite.txt" | tail -n 20; tail -n 3 "$OUT/suite.txt"
+  one_seed_table last
+elif [ "$part" = session ]; then
   # One session's whole check in one call of under 10 minutes: the GPU test layer first (the exactness of the CUDA
   # paths: the default of a long run compiled inside CUDA graphs, SB3 equality, seed batches), then the tables.
   timeout 150 python3 -m pytest -q -p no:cacheprovider -n 11 --timeout 140 -rfEs --durations=12 tests/gpu \
