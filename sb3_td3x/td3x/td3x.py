@@ -23,6 +23,7 @@ from stable_baselines3.common.utils import FloatSchedule, get_parameters_by_name
 
 from sb3_td3x.common import denormals
 from sb3_td3x.common.buffers import TensorReplayBuffer
+from sb3_td3x.common.core_waits import CoreWaits
 from sb3_td3x.common.random_streams import RandomStreams
 from sb3_td3x.td3x.hooks import HOOK_NAMES, changed_hooks
 from sb3_td3x.td3x.optim import minimize
@@ -527,6 +528,10 @@ class TD3X(OffPolicyAlgorithm):
                     actor_infos.append(actor_info)
 
         self._log_train_infos(critic_infos, actor_infos)
+        if self.device.type == "cpu":  # threads that wait for cores held by other work: said once
+            if "_core_waits" not in self.__dict__:
+                self._core_waits = CoreWaits()
+            self._core_waits.warn_once()
 
     def gradient_step(self, batch_size: int, update_actor: bool) -> tuple[dict[str, th.Tensor], dict[str, th.Tensor]]:
         """One gradient step: steps 4 to 15 in order; the actor and the targets only when ``update_actor``.
@@ -911,7 +916,7 @@ class TD3X(OffPolicyAlgorithm):
             *super()._excluded_save_params(),
             "actor", "critic", "actor_target", "critic_target", "_critic_lr_schedule", "_step_fn", "_step_fn_for",
             "_exploration_choice", "_prefetched_action", "random_streams", "update_path", "update_reason", "cuda_graph",
-            "cuda_graph_reason", "update_compiled", "compile_reason", "exploration_path",
+            "cuda_graph_reason", "update_compiled", "compile_reason", "exploration_path", "_core_waits",
             "_actor_params", "_actor_target_params", "_critic_params", "_critic_target_params", "_actor_batch_norm_stats",
             "_actor_batch_norm_stats_target", "_critic_batch_norm_stats", "_critic_batch_norm_stats_target",
         ]  # fmt: skip
