@@ -5,9 +5,9 @@ each of OpenMP's parallel regions waits for a thread that is not running, and li
 cores for a while before they sleep (300,000 times by default), keeping the missing thread off them. The compiled update
 runs dozens of parallel regions a gradient step (Inductor's kernels, MKL's products). Measured on a 2-core Intel Xeon
 (``docs/performance_log.md``, 2026-11-29): stock TD3X on Hopper-v5 with 2 threads and one core's time (busy processes of
-another session beside it) **453 ms an environment step against 4.3 ms with 1 thread**; SB3's eager ``TD3`` 17 ms a
-gradient step so. ``OMP_WAIT_POLICY=passive`` (set before Python starts) ends the collapse, at 2.8x the time on free
-cores.
+another session beside it) **453 ms an environment step against 4.3 ms with 1 thread**; SB3's eager ``TD3`` 17 and 73 ms
+a gradient step so (4.75 on free cores). ``OMP_WAIT_POLICY=passive`` (set before Python starts) ends the collapse, at
+2.8x the time on free cores.
 
 :class:`CoreWaits` reads how long this process's threads waited, runnable, for a core (``run_delay`` of each
 ``/proc/self/task/*/schedstat``), per second of wall time: 0.01 on free cores there, 1.0 with one core's time;
