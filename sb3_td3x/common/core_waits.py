@@ -5,7 +5,7 @@ each of OpenMP's parallel regions waits for a thread that is not running, and li
 cores for a while before they sleep (300,000 times by default), keeping the missing thread off them. The compiled update
 runs dozens of parallel regions a gradient step (Inductor's kernels, MKL's products). Measured on a 2-core Intel Xeon
 (``docs/performance_log.md``, 2026-11-29): stock TD3X on Hopper-v5 with 2 threads and one core's time (busy processes of
-another session beside it) **453 ms an environment step against 4.3 ms with 1 thread**; SB3's eager ``TD3`` 17 and 73 ms
+another session beside it) **453 ms an environment step against 4.3 ms with 1 thread**; SB3's eager ``TD3`` 17, 73 and 640 ms
 a gradient step so (4.75 on free cores). ``OMP_WAIT_POLICY=passive`` (set before Python starts) ends the collapse, at
 2.8x the time on free cores.
 
@@ -77,7 +77,7 @@ class CoreWaits:
         warnings.warn(
             f"This process's threads waited for a core {rate:.2f} s of each second over the last {WINDOW_S:.0f} s, with "
             f"{th.get_num_threads()} torch threads: other work shares its cores, and each parallel region of the update "
-            "waits for a thread that is not running (measured: up to 100x slower). Give the process cores of its own, "
+            "waits for a thread that is not running (measured: 4 to 190 times slower). Give the process cores of its own, "
             "or fewer threads (torch.set_num_threads, or run.py's torch_threads=...), or set OMP_WAIT_POLICY=passive "
             "before Python starts (2.8x slower on free cores).",
             stacklevel=2,
