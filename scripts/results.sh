@@ -40,11 +40,13 @@ PY
     return 0
   fi
   # A run that wrote records but no checkpoint (killed in its first steps) cannot be resumed, and run.py refuses to
-  # start a new run over its records: they are moved aside, never deleted.
+  # start a new run over its records: they are moved aside, never deleted, out of the results' folder (where the
+  # aggregation would meet the seed twice) to <RESULTS_DIR>.unfinished/<env>/<algo>/seed<seed>-<date>.
   if ! compgen -G "$dir/checkpoints/last*/meta.json" >/dev/null && [[ -f $dir/config.yaml || -f $dir/evaluations.csv ]]; then
     local aside
-    aside="$dir.unfinished-$(date +%Y%m%d-%H%M%S)"
-    mv "$dir" "$aside" && echo "no checkpoint in $dir: its records moved to $aside, starting again"
+    aside="${root%/}.unfinished/$env/$algo/seed$seed-$(date +%Y%m%d-%H%M%S)"
+    mkdir -p "$(dirname "$aside")" && mv "$dir" "$aside" &&
+      echo "no checkpoint in $dir: its records moved to $aside, starting again"
   fi
   mkdir -p "$dir"
   # Any checkpoint counts (last, last.prev, a whole last.tmp): run.py takes the newest whole one.

@@ -121,6 +121,27 @@ def test_the_command_compares_each_pair_of_algos_of_an_env(tmp_path, capsys):
     assert not (tmp_path / "out" / "compare.csv").exists()
 
 
+def test_two_folders_of_one_seed_are_refused_and_one_folder_given_twice_counts_once(tmp_path, capsys, monkeypatch):
+    runs = tmp_path / "runs"
+    for seed in range(2):
+        write_run(runs / "td3" / f"seed{seed}", "Hopper-v5", "td3", seed, [100.0, 200.0 + seed])
+    # A run started again, its first try kept beside it (as scripts/results.sh once did): not a third seed
+    write_run(runs / "td3" / "seed0.unfinished", "Hopper-v5", "td3", 0, [5.0])
+    write_run(runs / "ddpg" / "seed0", "Hopper-v5", "ddpg", 0, [1.0, 2.0])  # the same seed of another algo: fine
+    assert main([str(runs), "--out", str(tmp_path / "out")]) == 2
+    error = capsys.readouterr().err
+    assert "2 run folders of Hopper-v5, algo td3, seed 0" in error and "seed0.unfinished" in error, error
+    assert "name the run folders to aggregate" in error and not (tmp_path / "out" / "aggregate.csv").exists()
+    # The run folders named, one of them through two paths spelled otherwise (absolute, relative): each counted once
+    monkeypatch.chdir(tmp_path)
+    named = [str(runs / "td3" / "seed0"), str(runs / "td3" / "seed1"), "runs/td3", "runs/ddpg"]
+    (runs / "td3" / "seed0.unfinished" / "config.yaml").unlink()  # no longer a run folder
+    assert main([*named, "--out", str(tmp_path / "out")]) == 0
+    table = pd.read_csv(tmp_path / "out" / "aggregate.csv").set_index("algo")
+    assert table.loc["td3", "n_runs"] == 2 and table.loc["td3", "final_mean"] == pytest.approx(200.5)
+    assert table.loc["ddpg", "n_runs"] == 1
+
+
 def test_the_command_says_when_there_is_nothing_to_aggregate(tmp_path, capsys):
     assert main([str(tmp_path)]) == 2
     assert "No run folder" in capsys.readouterr().err

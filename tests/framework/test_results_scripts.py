@@ -96,6 +96,21 @@ def test_bad_arguments_are_refused_with_a_message(tmp_path):
     assert failed.returncode != 0 and "there is no config 'no_such_algo'" in failed.stdout, failed.stdout
 
 
+def test_a_run_that_never_checkpointed_is_moved_out_of_the_results_folder(tmp_path):
+    # Records of a run killed before its first checkpoint: it cannot resume, and a new run may not start over them.
+    # They are moved, never deleted, and out of the folder that the aggregation reads (where seed 5 would be twice).
+    killed = tmp_path / "runs" / "hopper" / "no_such_algo" / "seed5"
+    killed.mkdir(parents=True)
+    (killed / "config.yaml").write_text("seed: 5\n")
+    (killed / "evaluations.csv").write_text("timesteps,mean_return\n300,1.0\n")
+    out = results_sh(tmp_path, "600", "hopper:no_such_algo:5")  # the run then fails at once: no such algo
+    assert "there is no config 'no_such_algo'" in out.stdout, out.stdout + out.stderr
+    (aside,) = (tmp_path / "runs.unfinished" / "hopper" / "no_such_algo").iterdir()
+    assert aside.name.startswith("seed5-") and f"its records moved to {aside}" in out.stdout, out.stdout
+    assert (aside / "evaluations.csv").read_text() == "timesteps,mean_return\n300,1.0\n"
+    assert not list((tmp_path / "runs").rglob("evaluations.csv")) and not list((tmp_path / "runs").rglob("config.yaml"))
+
+
 def test_publish_copies_the_records_and_aggregates_them(tmp_path, hopper_runs):
     copy_runs(hopper_runs, tmp_path)
     # A seed still running (no summary.json yet): shown with its progress, not aggregated with the finished ones

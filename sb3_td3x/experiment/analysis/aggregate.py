@@ -2,12 +2,13 @@
 
     python -m sb3_td3x.experiment.analysis.aggregate runs/multirun/2026-01-01_12-00-00 [more folders] [--stat iqm] [--out DIR]
 
-Every run folder below the given paths (a folder with ``evaluations.csv`` and ``config.yaml``) is grouped by
-(env id, algo name); the seeds of a group are aligned on the evaluation steps they all have. The statistic over
-seeds is the mean or the interquartile mean (IQM, the mean of the middle 50%, as recommended by Agarwal et al.
-2021, "Deep RL at the Edge of the Statistical Precipice"); its 95% confidence interval is a percentile
-bootstrap over seeds. Writes ``aggregate.csv``, ``aggregate.md`` (with each seed's final return), ``per_seed.csv``
-(one row per run: env id, algo, seed, run folder, steps, final return) and ``aggregate_<env>.png`` to ``--out``.
+Every run folder below the given paths (a folder with ``evaluations.csv`` and ``config.yaml``) is grouped by (env
+id, algo name), one folder a seed (two folders of one seed are refused, never averaged as two); the seeds of a group
+are aligned on the evaluation steps they all have. The statistic over seeds is the mean or the interquartile mean
+(IQM, the mean of the middle 50%, as recommended by Agarwal et al. 2021, "Deep RL at the Edge of the Statistical
+Precipice"); its 95% confidence interval is a percentile bootstrap over seeds. Writes ``aggregate.csv``,
+``aggregate.md`` (with each seed's final return), ``per_seed.csv`` (one row per run: env id, algo, seed, run folder,
+steps, final return) and ``aggregate_<env>.png`` to ``--out``.
 
 Runs whose evaluations measured the critic's value (the ``evaluations.csv`` columns ``value_estimate``,
 ``true_value``, ``overestimation``, ``normalized_bias``: ``eval.value_bias``) are also aggregated into
@@ -69,15 +70,22 @@ def bootstrap_ci(
     return np.percentile(resampled, 2.5, axis=-1), np.percentile(resampled, 97.5, axis=-1)
 
 
+class SeedTwiceError(ValueError):
+    """Two run folders of one env, algo and seed below the paths given: averaged, they would count as two seeds."""
+
+
 def load_runs(paths: list[Path]) -> pd.DataFrame:
     """One row per evaluation of every run below ``paths``: env_id, algo, seed, run_dir, timesteps, mean_return,
-    and the value columns (NaN for a run without them)."""
-    frames = []
+    and the value columns (NaN for a run without them). A folder reached through two of the paths counts once; two
+    folders of the same env, algo and seed raise :class:`SeedTwiceError` (a copy, a run made again, another
+    hyperparameter's run: never two seeds)."""
+    frames, seen = [], set()
     for path in paths:
         for csv_path in sorted(path.rglob(EVALUATIONS_CSV)):
             run_dir = csv_path.parent
-            if not (run_dir / CONFIG_FILE).is_file():
+            if not (run_dir / CONFIG_FILE).is_file() or run_dir.resolve() in seen:
                 continue
+            seen.add(run_dir.resolve())
             config = OmegaConf.load(run_dir / CONFIG_FILE)
             evaluations = pd.read_csv(csv_path).reindex(columns=["timesteps", "mean_return", *VALUE_FIELDS])
             frames.append(
@@ -91,7 +99,19 @@ def load_runs(paths: list[Path]) -> pd.DataFrame:
             )
     if not frames:
         raise FileNotFoundError(f"No run folder (with {EVALUATIONS_CSV} and {CONFIG_FILE}) below {', '.join(map(str, paths))}")
-    return pd.concat(frames, ignore_index=True)
+    runs = pd.concat(frames, ignore_index=True)
+    folders = runs.drop_duplicates("run_dir")
+    key = ["env_id", "algo", "seed"]
+    twice = folders[folders.duplicated(key, keep=False)].groupby(key, sort=True)
+    if twice.ngroups:
+        (env_id, algo, seed), group = next(iter(twice))
+        more = f" ({twice.ngroups - 1} more seeds have two folders or more)" if twice.ngroups > 1 else ""
+        raise SeedTwiceError(
+            f"{len(group)} run folders of {env_id}, algo {algo}, seed {seed}, which averaged would count as {len(group)} "
+            f"seeds: {', '.join(group.run_dir)}{more}. A copy, a run made again, or runs of other settings (a multirun "
+            "over hyperparameters): name the run folders to aggregate, or move the others out of the folders given"
+        )
+    return runs
 
 
 def aggregate(runs: pd.DataFrame, stat: str = "mean") -> tuple[pd.DataFrame, dict[tuple[str, str], pd.DataFrame]]:
@@ -290,7 +310,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         runs = load_runs(args.paths)
-    except FileNotFoundError as error:
+    except (FileNotFoundError, SeedTwiceError) as error:
         print(f"Error: {error}", file=sys.stderr)
         return 2
     table, curves = aggregate(runs, args.stat)
