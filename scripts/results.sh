@@ -43,7 +43,21 @@ PY
   # start a new run over its records: they are moved aside, never deleted, out of the results' folder (where the
   # aggregation would meet the seed twice) to <RESULTS_DIR>.unfinished/<env>/<algo>/seed<seed>-<date>.
   if ! compgen -G "$dir/checkpoints/last*/meta.json" >/dev/null && [[ -f $dir/config.yaml || -f $dir/evaluations.csv ]]; then
-    local aside
+    # Unless a process runs in it now, before its first checkpoint (this command started twice): left to it.
+    local busy aside
+    if ! busy=$("$python" - "$dir" 2>&1 <<'PY'
+import sys
+from sb3_td3x.experiment.run.lock import RunFolderBusy, RunFolderLock
+try:
+    RunFolderLock.check_free(sys.argv[1])
+except RunFolderBusy as error:
+    print(error)
+    sys.exit(3)
+PY
+    ); then
+      echo "busy, left as it is: $busy"
+      return 3
+    fi
     aside="${root%/}.unfinished/$env/$algo/seed$seed-$(date +%Y%m%d-%H%M%S)"
     mkdir -p "$(dirname "$aside")" && mv "$dir" "$aside" &&
       echo "no checkpoint in $dir: its records moved to $aside, starting again"

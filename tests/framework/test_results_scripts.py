@@ -111,6 +111,24 @@ def test_a_run_that_never_checkpointed_is_moved_out_of_the_results_folder(tmp_pa
     assert not list((tmp_path / "runs").rglob("evaluations.csv")) and not list((tmp_path / "runs").rglob("config.yaml"))
 
 
+def test_a_run_in_progress_before_its_first_checkpoint_is_left_to_its_process(tmp_path):
+    # The same command started twice: the second finds the first's records and no checkpoint yet. The folder's owner
+    # holds its lock; the folder is neither moved nor started over.
+    from sb3_td3x.experiment.run.lock import RunFolderLock
+
+    running = tmp_path / "runs" / "hopper" / "no_such_algo" / "seed6"
+    lock = RunFolderLock.acquire(running)
+    try:
+        (running / "evaluations.csv").write_text("timesteps,mean_return\n300,1.0\n")
+        out = results_sh(tmp_path, "600", "hopper:no_such_algo:6")
+    finally:
+        lock.release()
+    busy = f"busy, left as it is: The run folder {running} is in use by process {os.getpid()}"
+    assert out.returncode != 0 and busy in out.stdout, out.stdout + out.stderr
+    assert sorted(path.name for path in running.iterdir()) == [".lock", "evaluations.csv"]
+    assert not (tmp_path / "runs.unfinished").exists()
+
+
 def test_publish_copies_the_records_and_aggregates_them(tmp_path, hopper_runs):
     copy_runs(hopper_runs, tmp_path)
     # A seed still running (no summary.json yet): shown with its progress, not aggregated with the finished ones
