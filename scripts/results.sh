@@ -44,8 +44,8 @@ PY
   # aggregation would meet the seed twice) to <RESULTS_DIR>.unfinished/<env>/<algo>/seed<seed>-<date>.
   if ! compgen -G "$dir/checkpoints/last*/meta.json" >/dev/null && [[ -f $dir/config.yaml || -f $dir/evaluations.csv ]]; then
     # Unless a process runs in it now, before its first checkpoint (this command started twice): left to it.
-    local busy aside
-    if ! busy=$("$python" - "$dir" 2>&1 <<'PY'
+    local busy status=0 aside
+    busy=$("$python" - "$dir" 2>&1 <<'PY'
 import sys
 from sb3_td3x.experiment.run.lock import RunFolderBusy, RunFolderLock
 try:
@@ -54,8 +54,13 @@ except RunFolderBusy as error:
     print(error)
     sys.exit(3)
 PY
-    ); then
+    ) || status=$?
+    if ((status == 3)); then
       echo "busy, left as it is: $busy"
+      return 3
+    elif ((status != 0)); then  # fails closed: a folder that may be in use is never moved
+      echo "left as it is: $dir has records and no checkpoint, and whether a process runs in it could not be checked" \
+        "($python: ${busy##*$'\n'})"
       return 3
     fi
     aside="${root%/}.unfinished/$env/$algo/seed$seed-$(date +%Y%m%d-%H%M%S)"
