@@ -11,8 +11,9 @@ a gradient step so (4.75 on free cores). ``OMP_WAIT_POLICY=passive`` (set before
 
 :class:`CoreWaits` reads how long this process's threads waited, runnable, for a core (``run_delay`` of each
 ``/proc/self/task/*/schedstat``), per second of wall time: 0.01 on free cores there, 1.0 with one core's time;
-:meth:`CoreWaits.warn_once`, after each ``train()`` on a CPU with two threads or more, says so once with the fix.
-Nothing where Linux does not give the numbers.
+:meth:`CoreWaits.warn_once`, after each ``train()`` on a CPU with two threads or more, says so once with the fix (for
+SB3's ``TD3`` run by run.py, its callback :class:`~sb3_td3x.experiment.run.callbacks.CoreWaitsCheck`). Nothing where
+Linux does not give the numbers.
 """
 
 from __future__ import annotations

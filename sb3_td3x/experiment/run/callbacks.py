@@ -1,4 +1,5 @@
-"""SB3 callbacks of a run: periodic evaluation, checkpoints, divergence check, progress bar.
+"""SB3 callbacks of a run: periodic evaluation, checkpoints, divergence check, progress bar, the core-waits check of
+a model that does not make it itself.
 
 Everything that looks at or saves the model runs at a *rollout boundary* (``_on_rollout_start``, after the
 previous ``train()`` and before the next environment step). Inside ``_on_step`` the environment has stepped
@@ -30,6 +31,7 @@ from stable_baselines3.common.vec_env import VecEnv, sync_envs_normalization
 from tqdm import tqdm
 from tqdm.contrib.logging import logging_redirect_tqdm
 
+from sb3_td3x.common.core_waits import CoreWaits
 from sb3_td3x.experiment.errors import TrainingDiverged, TrainingInterrupted
 from sb3_td3x.experiment.layout import (
     BEST,
@@ -42,6 +44,7 @@ from sb3_td3x.experiment.layout import (
 from sb3_td3x.experiment.run.checkpoints import checkpoint_dir, save_checkpoint
 from sb3_td3x.experiment.run.folder import write_atomically
 from sb3_td3x.experiment.run.value_bias import Episode, EpisodeRecorder, cut_at_time_limit, measure_value_bias
+from sb3_td3x.td3x import TD3X
 
 log = logging.getLogger(__name__)
 
@@ -278,6 +281,27 @@ class DivergenceCheck(BaseCallback):
         for key, value in self.logger.name_to_value.items():
             if key.startswith("train/") and key.endswith("loss") and not math.isfinite(value):
                 raise TrainingDiverged(key, value, self.num_timesteps)
+
+
+class CoreWaitsCheck(BaseCallback):
+    """The check of TD3X's ``train()`` (:class:`~sb3_td3x.common.core_waits.CoreWaits`: a warning, once, when the torch
+    threads wait for cores that other work holds), for a model on a CPU that does not make it itself (SB3's ``TD3`` run
+    as a peer, ``algo=sb3_td3``, collapses alike beside busy cores): at each rollout boundary, after ``train()``."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.waits: CoreWaits | None = None
+
+    def _on_training_start(self) -> None:
+        if not isinstance(self.model, TD3X) and self.model.device.type == "cpu":
+            self.waits = CoreWaits()
+
+    def _on_step(self) -> bool:
+        return True
+
+    def _on_rollout_start(self) -> None:
+        if self.waits is not None:
+            self.waits.warn_once()
 
 
 class ProgressBar(BaseCallback):

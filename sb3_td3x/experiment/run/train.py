@@ -24,7 +24,7 @@ from omegaconf import DictConfig
 from sb3_td3x.common.redaction import redact
 from sb3_td3x.experiment.configs.algos import algorithm_class, build_algorithm
 from sb3_td3x.experiment.layout import LAST, LEARNING_CURVE_PNG
-from sb3_td3x.experiment.run.callbacks import Checkpointer, DivergenceCheck, PeriodicEvaluation, ProgressBar
+from sb3_td3x.experiment.run.callbacks import Checkpointer, CoreWaitsCheck, DivergenceCheck, PeriodicEvaluation, ProgressBar
 from sb3_td3x.experiment.run.checkpoints import checkpoint_dir, load_checkpoint, load_resumable
 from sb3_td3x.experiment.run.envs import make_eval_env, make_train_env, record_video
 from sb3_td3x.experiment.run.folder import RunFolder, check_resume, public_config, saved_config
@@ -208,7 +208,8 @@ def _callbacks(run: Run, eval_env: Any, config: dict[str, Any], experiment_state
     evaluation.listeners.append(checkpointer.on_evaluation)
     if run.progress is not None:
         evaluation.listeners.append(run.progress.on_evaluation)
-    run.callbacks = [DivergenceCheck(), evaluation, checkpointer] + ([run.progress] if run.progress is not None else [])
+    run.callbacks = [DivergenceCheck(), CoreWaitsCheck(), evaluation, checkpointer]
+    run.callbacks += [run.progress] if run.progress is not None else []
 
 
 def finish(run: Run) -> float:
