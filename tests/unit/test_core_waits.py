@@ -75,7 +75,7 @@ def run_callbacks(run_dir: str) -> list[object]:
 def test_sb3_td3_run_by_run_py_is_checked_too_and_td3x_once(tmp_path):
     # run.py adds the callback to every run: SB3's TD3 gets the check through it; TD3X checks in train(), not twice
     assert CoreWaitsCheck in {type(callback) for callback in run_callbacks(str(tmp_path / "run"))}
-    count, message = train_on_one_core(threads=2, steps=1100, model="sb3", callback=True)
+    count, message = train_on_one_core(threads=2, steps=600, model="sb3", callback=True)
     assert count == 1 and "2 torch threads" in message
     for model, checks in ((TD3("MlpPolicy", "Pendulum-v1"), True), (TD3X("MlpPolicy", "Pendulum-v1"), False)):
         check = CoreWaitsCheck()
